@@ -1,0 +1,29 @@
+# Two entry points for a fresh machine; each creates/reuses .venv and installs what it needs.
+PY ?= python3
+VENV := .venv
+STAMP := $(VENV)/.installed-stamp
+
+.PHONY: demo test test-slow bench venv clean
+
+$(STAMP): pyproject.toml
+	test -x $(VENV)/bin/python || $(PY) -m venv $(VENV)
+	$(VENV)/bin/python -m pip install -q --upgrade pip
+	$(VENV)/bin/python -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/equibim demo
+
+test: $(STAMP)
+	$(VENV)/bin/python -m pytest -m "not slow" -q
+
+test-slow: $(STAMP)
+	$(VENV)/bin/python -m pytest -m slow -q
+
+bench: $(STAMP)
+	mkdir -p results && $(VENV)/bin/python benchmarks/sim.py --out results/bench_sim.json
+
+clean:
+	rm -rf $(VENV) *.egg-info
