@@ -1,0 +1,24 @@
+"""equibim-jax: EquiBim (left-right symmetry regularisation for bimanual imitation) in JAX.
+
+Importing the package turns on the persistent JAX compilation cache (see
+``equibim_jax._cache``); set ``EQUIBIM_JAX_CACHE=0`` to opt out.
+"""
+
+from equibim_jax._cache import (
+    compilation_cache_dir,
+    disable_compilation_cache,
+    enable_compilation_cache,
+)
+from equibim_jax._cache import _enable_from_env
+
+_enable_from_env()
+del _enable_from_env
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "__version__",
+    "compilation_cache_dir",
+    "disable_compilation_cache",
+    "enable_compilation_cache",
+]
