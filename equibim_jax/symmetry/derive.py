@@ -133,11 +133,16 @@ class ModelSymmetry:
 
     def describe(self) -> str:
         """A table of joint pairs with their signs and offsets."""
-        lines = [f"{'joint':>20s}   {'mirror joint':<20s} sign   offset"]
+        lines = [f"{'joint':>20s}   {'mirror joint':<20s}  sign   offset"]
         for j, jm in enumerate(self.joints):
-            s = self.joint_signs[j]
-            sign = {1.0: "+1", -1.0: "-1"}.get(float(s), "M R L")
-            lines.append(f"{self.joint_names[j]:>20s} ↔ {self.joint_names[jm]:<20s} {sign:>5s}")
+            s = float(self.joint_signs[j])
+            sign = {1.0: "+1", -1.0: "-1"}.get(s, "MRL")
+            adr = None
+            off = ""
+            if s != 0.0 and self.qpos.names is not None:
+                adr = self.qpos.names.index(self.joint_names[jm]) if self.joint_names[jm] in self.qpos.names else None
+                off = f"{self.qpos.offsets[adr]:+.4f}" if adr is not None else ""
+            lines.append(f"{self.joint_names[j]:>20s} ↔ {self.joint_names[jm]:<20s} {sign:>5s}  {off}")
         return "\n".join(lines)
 
 
