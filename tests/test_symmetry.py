@@ -320,3 +320,14 @@ def test_verify_detects_a_wrong_map():
     bad_q = sy.JointMap(ms.qpos.perm, -ms.qpos.signs, ms.qpos.offsets)
     bad = dataclasses.replace(ms, qpos=bad_q)
     assert sy.verify_symmetry(model, bad, n=16) > 1e-2
+
+
+def test_geom_colour_asymmetry_is_refused():
+    """Images mirror as a flip only if mirrored geoms look the same."""
+    xml = fx.side_by_side_xml(with_cup=False)
+    model = fx.load(xml)
+    g = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "r_link2")
+    geom = [i for i in range(model.ngeom) if model.geom_bodyid[i] == g][0]
+    model.geom_rgba[geom] = [0.1, 0.2, 0.9, 1.0]
+    with pytest.raises(sy.SymmetryError, match="same type, size and colour"):
+        sy.derive_symmetry(model, sy.Mirror.from_axis("y"))

@@ -356,7 +356,8 @@ class _Deriver:
             "geom", m.ngeom, m.geom_bodyid, kin0.geom_xpos, kin_b.geom_xpos,
             kin0.geom_xmat, kin_b.geom_xmat, bodies,
             same=lambda g, g2: m.geom_type[g] == m.geom_type[g2]
-            and np.allclose(m.geom_size[g], m.geom_size[g2], atol=self.tol),
+            and np.allclose(m.geom_size[g], m.geom_size[g2], atol=self.tol)
+            and np.allclose(self.geom_color(g), self.geom_color(g2), atol=1e-6),
             shape_ok=lambda g, q: _is_primitive_symmetry(q, m.geom_type[g], self.tol),
         )
         sites = self.match_elements(
@@ -391,6 +392,11 @@ class _Deriver:
             if not jm.is_involution(atol=1e-6):
                 raise SymmetryError(f"the derived {name} map is not an involution")
         return sym
+
+    def geom_color(self, g) -> np.ndarray:
+        """The RGBA a renderer shows: the material's when the geom has one."""
+        mat = self.m.geom_matid[g]
+        return self.m.mat_rgba[mat] if mat >= 0 else self.m.geom_rgba[g]
 
     def _jn(self, b):
         return [_joint_name(self.m, j) for j in self.body_jnts[b]] or "none"
@@ -492,8 +498,9 @@ class _Deriver:
                     best, best_res = e2, res
             if best < 0 or best_res > self.tol:
                 name = _name(self.m, getattr(mujoco.mjtObj, f"mjOBJ_{kind.upper()}"), e)
+                hint = " with the same type, size and colour" if kind == "geom" else ""
                 self.errors.append(
-                    f"{kind} '{name}' on body '{_body_name(self.m, body_of[e])}' has no mirror "
+                    f"{kind} '{name}' on body '{_body_name(self.m, body_of[e])}' has no mirror{hint} "
                     f"(best residual {best_res:.3g} m)"
                 )
             else:
