@@ -1,0 +1,61 @@
+"""Training: losses (BC, L_sym), TrainState, the jitted step and loop, checkpoints."""
+
+from equibim_jax.training.checkpoint import (
+    CheckpointError,
+    config_from_dict,
+    config_to_dict,
+    latest_step,
+    restore_checkpoint,
+    save_checkpoint,
+)
+from equibim_jax.training.losses import (
+    bc_loss,
+    concat_branches,
+    diffusion_loss,
+    field_op,
+    mirror_batch,
+    sym_loss,
+)
+from equibim_jax.training.train_step import (
+    BoundTrainFn,
+    OnDeviceDataset,
+    TrainConfig,
+    TrainState,
+    base_key,
+    build_step_fn,
+    create_train_state,
+    make_dataset,
+    make_optimizer,
+    make_train_loop,
+    make_train_step,
+    sample_batch,
+    window_indices,
+)
+
+__all__ = [
+    "BoundTrainFn",
+    "CheckpointError",
+    "OnDeviceDataset",
+    "TrainConfig",
+    "TrainState",
+    "base_key",
+    "bc_loss",
+    "build_step_fn",
+    "concat_branches",
+    "config_from_dict",
+    "config_to_dict",
+    "create_train_state",
+    "diffusion_loss",
+    "field_op",
+    "latest_step",
+    "make_dataset",
+    "make_optimizer",
+    "make_train_loop",
+    "make_train_step",
+    "mirror_batch",
+    "restore_checkpoint",
+    "sample_batch",
+    "save_checkpoint",
+    "sym_loss",
+    "window_indices",
+]

@@ -1,0 +1,174 @@
+"""Losses for the diffusion policy: behaviour cloning (ε-MSE) and the symmetry loss.
+
+All in normalised space. ``S`` is given per field: ``{field: op}`` (or an object with an
+``ops`` mapping, or a callable ``dict -> dict``), each op acting on trailing axes. The
+action op ``S_a`` must be *linear* in normalised space (a signed permutation, which a
+mirror-consistent normaliser guarantees): the mirrored branch uses the mirrored noise
+``S_a eps`` and relies on ``S_a add_noise(a0, eps, k) == add_noise(S_a a0, S_a eps, k)``.
+
+``L_sym`` (EquiBim, for an ε-predictor): at the same ``k`` and with the same noise
+mirrored, ``eps(S_a a_k, k, S O) ≈ S_a eps(a_k, k, O)``. Both branches go through the
+network as one concatenated batch ``[2B, ...]``: one forward and one backward pass at
+twice the batch, which XLA runs more efficiently than two passes.
+
+Whether gradients should flow through the ``S_a eps(a_k, k, O)`` side (the "target") of
+``L_sym`` is a choice: by default both sides get gradients (the loss is symmetric in the
+two branches); ``stop_gradient=True`` treats the original branch as a fixed target, so
+``L_sym`` only pulls the mirrored prediction.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from equibim_jax.policies.diffusion import DiffusionSchedule, add_noise
+
+Array = Any
+ApplyFn = Callable[[Any, Array, Array, Mapping[str, Array]], Array]
+
+__all__ = ["field_op", "mirror_batch", "bc_loss", "sym_loss", "diffusion_loss", "concat_branches"]
+
+
+def field_op(symmetry: Any, name: str) -> Callable[[Array], Array]:
+    """The op of one field from a symmetry in any accepted form.
+
+    Args:
+      symmetry: ``{field: op}``, an object with an ``ops`` mapping (and optionally a
+        ``passthrough`` tuple of unchanged fields), or ``dict -> dict``.
+      name: field name.
+    Returns:
+      ``op: [..., D] -> [..., D]``.
+    Raises:
+      KeyError: if a mapping has no op for ``name``.
+    """
+    ops = getattr(symmetry, "ops", symmetry)
+    if name in getattr(symmetry, "passthrough", ()):
+        return lambda x: x
+    if isinstance(ops, Mapping):
+        if name not in ops:
+            raise KeyError(f"symmetry has no op for field {name!r}; it has {sorted(ops)}")
+        return ops[name]
+    if callable(symmetry):
+        return lambda x: symmetry({name: x})[name]
+    raise TypeError(f"unsupported symmetry type {type(symmetry).__name__}")
+
+
+def mirror_batch(symmetry: Any, batch: Mapping[str, Array], names=None) -> dict[str, Array]:
+    """Apply ``S`` field by field: ``{f: [B, ...]} -> {f: [B, ...]}`` for ``f`` in ``names``."""
+    names = list(batch) if names is None else list(names)
+    return {n: field_op(symmetry, n)(batch[n]) for n in names}
+
+
+def concat_branches(a: Mapping[str, Array], b: Mapping[str, Array]) -> dict[str, Array]:
+    """Stack two batches along axis 0: ``{f: [B, ...]}, {f: [B, ...]} -> {f: [2B, ...]}``."""
+    return {k: jnp.concatenate([a[k], b[k]], axis=0) for k in a}
+
+
+def bc_loss(eps_pred: Array, noise: Array) -> Array:
+    """ε-prediction MSE: ``mean((eps_pred - noise) ** 2)`` over ``[B, Tp, A]`` -> scalar."""
+    return jnp.mean(jnp.square(eps_pred - noise))
+
+
+def _sym_term(eps_orig: Array, eps_mirr: Array, action_op, stop_gradient: bool) -> Array:
+    target = action_op(eps_orig)
+    if stop_gradient:
+        target = jax.lax.stop_gradient(target)
+    return jnp.mean(jnp.square(eps_mirr - target))
+
+
+def sym_loss(
+    apply_fn: ApplyFn,
+    params: Any,
+    noisy_actions: Array,
+    k: Array,
+    obs: Mapping[str, Array],
+    symmetry: Any,
+    *,
+    action_key: str = "action",
+    stop_gradient: bool = False,
+) -> Array:
+    """``L_sym = mean || eps(S_a a_k, k, S O) - S_a eps(a_k, k, O) ||^2`` (standalone).
+
+    Args:
+      apply_fn: ``(params, noisy_actions [B, Tp, A], k [B], obs) -> eps [B, Tp, A]``.
+      params: network parameters.
+      noisy_actions: ``[B, Tp, A]`` normalised noisy actions ``a_k``.
+      k: ``[B]`` int diffusion steps.
+      obs: ``{field: [B, To, ...]}`` normalised observations; every field is mirrored.
+      symmetry: normalised-space ``S`` with an op for ``action_key`` and each obs field.
+      action_key: name of the action op.
+      stop_gradient: stop gradients through ``S_a eps(a_k, k, O)``.
+    Returns:
+      scalar, mean over ``B * Tp * A`` elements.
+    """
+    s_a = field_op(symmetry, action_key)
+    x = jnp.concatenate([noisy_actions, s_a(noisy_actions)], axis=0)
+    o = concat_branches(obs, mirror_batch(symmetry, obs))
+    eps = apply_fn(params, x, jnp.concatenate([k, k], axis=0), o)
+    eps_orig, eps_mirr = jnp.split(eps, 2, axis=0)
+    return _sym_term(eps_orig, eps_mirr, s_a, stop_gradient)
+
+
+def diffusion_loss(
+    apply_fn: ApplyFn,
+    params: Any,
+    batch: Mapping[str, Array],
+    key: Array,
+    schedule: DiffusionSchedule,
+    symmetry: Any = None,
+    *,
+    sym_weight: float = 0.0,
+    stop_gradient: bool = False,
+    mirror_augment: bool = False,
+    action_key: str = "action",
+) -> tuple[Array, dict[str, Array]]:
+    """Total loss ``bc + sym_weight * sym`` on one batch, with named terms.
+
+    The mirrored branch runs (in the same concatenated batch) when ``sym_weight > 0`` or
+    ``mirror_augment``; otherwise only the original batch goes through the network and
+    ``sym`` is reported as 0.
+
+    Args:
+      apply_fn: ``(params, [N, Tp, A], [N], obs) -> [N, Tp, A]``.
+      params: network parameters.
+      batch: ``{action_key: [B, Tp, A], obs fields: [B, To, ...]}`` normalised.
+      key: PRNG key for the noise and the diffusion steps.
+      schedule: DDPM schedule (``K`` steps).
+      symmetry: normalised-space ``S`` (needed if the mirrored branch runs).
+      sym_weight: ``lambda``, weight of ``L_sym``; a Python float (it decides statically
+        whether the mirrored branch is built).
+      stop_gradient: see :func:`sym_loss`.
+      mirror_augment: also add BC on the mirrored branch (mirror data augmentation);
+        ``bc`` is then the mean over both branches.
+      action_key: name of the action field.
+    Returns:
+      ``(total, {"bc", "sym", "total"})``, all scalars.
+    """
+    k_noise, k_step = jax.random.split(key)
+    a0 = batch[action_key]
+    obs = {f: v for f, v in batch.items() if f != action_key}
+    b = a0.shape[0]
+    noise = jax.random.normal(k_noise, a0.shape, a0.dtype)
+    k = jax.random.randint(k_step, (b,), 0, schedule.alphas_cumprod.shape[0])
+    a_k = add_noise(schedule, a0, noise, k)
+    if not (mirror_augment or sym_weight > 0):
+        bc = bc_loss(apply_fn(params, a_k, k, obs), noise)
+        return bc, {"bc": bc, "sym": jnp.zeros_like(bc), "total": bc}
+    if symmetry is None:
+        raise ValueError("diffusion_loss: sym_weight > 0 or mirror_augment needs a symmetry")
+    s_a = field_op(symmetry, action_key)
+    # Same k, same noise mirrored: S_a a_k == add_noise(S_a a0, S_a noise, k) as S_a is linear.
+    x = jnp.concatenate([a_k, s_a(a_k)], axis=0)
+    o = concat_branches(obs, mirror_batch(symmetry, obs))
+    eps = apply_fn(params, x, jnp.concatenate([k, k], axis=0), o)
+    eps_orig, eps_mirr = jnp.split(eps, 2, axis=0)
+    bc = bc_loss(eps_orig, noise)
+    if mirror_augment:
+        bc = 0.5 * (bc + bc_loss(eps_mirr, s_a(noise)))
+    sym = _sym_term(eps_orig, eps_mirr, s_a, stop_gradient)
+    total = bc + sym_weight * sym
+    return total, {"bc": bc, "sym": sym, "total": total}

@@ -1,0 +1,309 @@
+"""Losses (BC, L_sym), the jitted train step/loop, and checkpoints (exact resume)."""
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from orbax.checkpoint._src.path.atomicity import AtomicRenameTemporaryPath
+
+from equibim_jax.data import fit_normalizer, normalized_symmetry
+from equibim_jax.policies import EncoderConfig, PolicyApplyFn, PolicyConfig, UNetConfig, init_params
+from equibim_jax.symmetry import JointMap, Mirror, Symmetry, point_cloud_op
+from equibim_jax.training import (
+    CheckpointError,
+    TrainConfig,
+    base_key,
+    config_from_dict,
+    config_to_dict,
+    create_train_state,
+    diffusion_loss,
+    latest_step,
+    make_dataset,
+    make_train_loop,
+    restore_checkpoint,
+    save_checkpoint,
+    sym_loss,
+    window_indices,
+)
+
+A = 4
+POLICY = PolicyConfig(
+    action_dim=A,
+    state_dim=A,
+    obs_horizon=2,
+    pred_horizon=8,
+    action_horizon=4,
+    encoder=EncoderConfig(state_hidden=(16,), state_out=8, pc_hidden=(8, 16), pc_out=8),
+    # One U-Net level keeps compile times short; the full down/up path is covered in
+    # test_policy.py and benchmarks/train.py.
+    unet=UNetConfig(down_dims=(16,), kernel_size=5, n_groups=4, step_embed_dim=16),
+)
+TRAIN = TrainConfig(
+    batch_size=16,
+    learning_rate=1e-3,
+    warmup_steps=10,
+    total_steps=400,
+    sym_weight=0.1,
+    steps_per_dispatch=25,
+    seed=0,
+)
+# Arm A = joints (0, 1), arm B = joints (2, 3); the second joint of each arm flips sign.
+JM = JointMap([2, 3, 0, 1], [1, -1, 1, -1], [0.0, 0.0, 0.0, 0.0])
+RAW_SYM = Symmetry({"qpos": JM, "action": JM, "point_cloud": point_cloud_op(Mirror.from_axis("y"))})
+
+
+def _frames(episodes=8, length=20, seed=0):
+    """Smooth joint trajectories; the action is the next state; a noisy cloud per frame."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(length) / length
+    qs = []
+    for _ in range(episodes):
+        phase = rng.uniform(0, 2 * np.pi, A)
+        qs.append(np.sin(2 * np.pi * t[:, None] + phase) * [1.0, 0.5, 2.0, 0.3] + [0.5, 0.0, 1.0, 0.0])
+    q = np.concatenate(qs).astype(np.float32)
+    pc = rng.normal(size=(len(q), 16, 3)).astype(np.float32) * 0.2 + q[:, None, :3]
+    return {"qpos": q, "action": np.roll(q, -1, axis=0), "point_cloud": pc}, np.arange(1, episodes + 1) * length
+
+
+@pytest.fixture(scope="module")
+def setup():
+    frames, ends = _frames()
+    norm = fit_normalizer(frames, RAW_SYM)
+    sym = normalized_symmetry(RAW_SYM, norm)
+    dataset = make_dataset(norm.normalize(frames), ends, POLICY)
+    loop = make_train_loop(POLICY, TRAIN, dataset, sym)
+    return dict(norm=norm, sym=sym, dataset=dataset, loop=loop)
+
+
+# ---------------------------------------------------------------- L_sym
+
+
+def _inputs(b=3, seed=0):
+    ks = jax.random.split(jax.random.key(seed), 4)
+    x = jax.random.normal(ks[0], (b, POLICY.pred_horizon, A))
+    k = jax.random.randint(ks[1], (b,), 0, 100)
+    obs = {
+        "qpos": jax.random.normal(ks[2], (b, POLICY.obs_horizon, A)),
+        "point_cloud": jax.random.normal(ks[3], (b, POLICY.obs_horizon, 12, 3)),
+    }
+    return x, k, obs
+
+
+def test_sym_loss_zero_for_equivariant_model_positive_otherwise(setup):
+    sym = setup["sym"]
+    g = PolicyApplyFn(POLICY)
+    _, params = init_params(POLICY, jax.random.key(1))
+    s_a = sym["action"]
+
+    def symmetrised(p, x, k, obs):  # f = 0.5 (g(x, O) + S_a g(S_a x, S O)): equivariant
+        mirrored_obs = {f: sym[f](v) for f, v in obs.items()}
+        return 0.5 * (g(p, x, k, obs) + s_a(g(p, s_a(x), k, mirrored_obs)))
+
+    x, k, obs = _inputs()
+
+    @jax.jit  # one compile for both models
+    def both(p):
+        return sym_loss(g, p, x, k, obs, sym), sym_loss(symmetrised, p, x, k, obs, sym)
+
+    generic, equivariant = (float(v) for v in both(params))
+    assert equivariant < 1e-10
+    assert generic > 1e-3
+
+
+def _small_apply(params, x, k, obs):
+    """A generic (not equivariant) ε-model that is cheap to compile: [B, Tp, A] -> same."""
+    feat = jnp.concatenate(
+        [obs["qpos"].reshape(x.shape[0], -1), obs["point_cloud"].mean(axis=(1, 2)), k[:, None] / 100.0],
+        axis=-1,
+    )
+    h = jnp.tanh(x @ params["w"] + (feat @ params["c"])[:, None, :])
+    return h @ params["v"]
+
+
+def _small_params(feat_dim=POLICY.obs_horizon * A + 3 + 1):
+    ks = jax.random.split(jax.random.key(5), 3)
+    return {
+        "w": jax.random.normal(ks[0], (A, 8)),
+        "c": jax.random.normal(ks[1], (feat_dim, 8)),
+        "v": jax.random.normal(ks[2], (8, A)),
+    }
+
+
+def test_sym_loss_stop_gradient_changes_gradients(setup):
+    sym = setup["sym"]
+    x, k, obs = _inputs()
+    params = _small_params()
+    grad = jax.grad(lambda p, sg: sym_loss(_small_apply, p, x, k, obs, sym, stop_gradient=sg))
+    g_both, g_stop = grad(params, False), grad(params, True)
+    assert all(np.all(np.isfinite(leaf)) for leaf in jax.tree.leaves(g_stop))
+    assert max(float(jnp.abs(g_both[n] - g_stop[n]).max()) for n in params) > 1e-6
+    # The loss value itself does not depend on the flag.
+    assert float(sym_loss(_small_apply, params, x, k, obs, sym, stop_gradient=True)) == pytest.approx(
+        float(sym_loss(_small_apply, params, x, k, obs, sym)), rel=1e-6
+    )
+
+
+def test_diffusion_loss_terms(setup):
+    from equibim_jax.policies import make_schedule
+    from equibim_jax.training import sample_batch
+
+    sym, ds = setup["sym"], setup["dataset"]
+    params = _small_params()
+    batch = sample_batch(ds, jax.random.key(2), 8)
+    assert batch["action"].shape == (8, 8, A) and batch["point_cloud"].shape == (8, 2, 16, 3)
+    sched = make_schedule(100)
+    total, terms = diffusion_loss(_small_apply, params, batch, jax.random.key(3), sched, sym, sym_weight=0.5)
+    assert set(terms) == {"bc", "sym", "total"}
+    assert float(total) == pytest.approx(float(terms["bc"] + 0.5 * terms["sym"]), rel=1e-6)
+    assert float(terms["sym"]) > 0
+    plain, plain_terms = diffusion_loss(_small_apply, params, batch, jax.random.key(3), sched)
+    # Same key -> same noise and k: BC of the original branch does not depend on the mirror.
+    assert float(plain_terms["bc"]) == pytest.approx(float(terms["bc"]), rel=1e-5)
+    assert float(plain_terms["sym"]) == 0.0
+    # Mirror augmentation averages BC over both branches.
+    _, aug = diffusion_loss(_small_apply, params, batch, jax.random.key(3), sched, sym, mirror_augment=True)
+    assert float(aug["bc"]) != pytest.approx(float(terms["bc"]), rel=1e-4)
+    with pytest.raises(ValueError, match="needs a symmetry"):
+        diffusion_loss(_small_apply, params, batch, jax.random.key(3), sched, None, sym_weight=0.5)
+
+
+# ---------------------------------------------------------------- data windows
+
+
+def test_window_indices_by_hand():
+    obs, act = window_indices([5, 8], obs_horizon=2, pred_horizon=4, pad_before=1, pad_after=1)
+    # Episode 0 (frames 0-4): starts t = -1..2; episode 1 (frames 5-7): t = 4..5.
+    np.testing.assert_array_equal(obs[:4], [[0, 0], [0, 1], [1, 2], [2, 3]])
+    np.testing.assert_array_equal(act[0], [0, 0, 1, 2])
+    np.testing.assert_array_equal(act[3], [2, 3, 4, 4])
+    np.testing.assert_array_equal(act[4:], [[5, 5, 6, 7], [5, 6, 7, 7]])
+    assert obs.shape == (6, 2) and act.shape == (6, 4)
+    with pytest.raises(ValueError, match="no training window"):
+        window_indices([2], 2, 8)
+    with pytest.raises(ValueError, match="strictly increasing"):
+        window_indices([5, 5], 2, 4)
+
+
+# ---------------------------------------------------------------- training
+
+
+def test_tiny_training_run_decreases_loss(setup):
+    state, _ = create_train_state(POLICY, TRAIN)
+    key = base_key(TRAIN)
+    totals = []
+    for _ in range(8):  # 200 steps, 25 per dispatch
+        state, metrics = setup["loop"](state, key)
+        assert metrics["total"].shape == (TRAIN.steps_per_dispatch,)
+        totals.append(float(metrics["bc"].mean()))
+    assert int(state.step) == 200
+    assert np.isfinite(totals).all()
+    assert totals[-1] < 0.7 * totals[0], totals
+    # The EMA trails the parameters but has moved away from the initial values.
+    init_state, _ = create_train_state(POLICY, TRAIN)
+    w0 = jax.tree.leaves(init_state.params)[0]
+    we = jax.tree.leaves(state.ema_params)[0]
+    assert float(jnp.abs(we - w0).max()) > 0
+
+
+def _assert_trees_equal(a, b):
+    la, lb = jax.tree.leaves(a), jax.tree.leaves(b)
+    assert len(la) == len(lb)
+    for x, y in zip(la, lb):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_exact_resume(setup, tmp_path, monkeypatch):
+    loop, key, norm = setup["loop"], base_key(TRAIN), setup["norm"]
+    config = {"policy": POLICY, "train": TRAIN}
+    straight, _ = create_train_state(POLICY, TRAIN)
+    for _ in range(2):
+        straight, _ = loop(straight, key)
+
+    half, _ = create_train_state(POLICY, TRAIN)
+    half, _ = loop(half, key)
+    # Orbax writes into a temporary folder and renames it into place on finalize.
+    finalized = []
+    original = AtomicRenameTemporaryPath.finalize
+
+    async def spy(self, *a, **kw):
+        finalized.append((self.get(), self.get_final(), self.get().exists()))
+        return await original(self, *a, **kw)
+
+    monkeypatch.setattr(AtomicRenameTemporaryPath, "finalize", spy)
+    save_checkpoint(tmp_path, half, norm, config)
+    assert all(".orbax-checkpoint-tmp" in tmp.name and existed for tmp, _, existed in finalized)
+    step_dir = [(tmp, final) for tmp, final, _ in finalized if str(final) == str(tmp_path / str(TRAIN.steps_per_dispatch))]
+    assert len(step_dir) == 1, finalized  # the step folder itself was renamed into place
+    assert not step_dir[0][0].exists() and step_dir[0][1].is_dir()
+    assert latest_step(tmp_path) == TRAIN.steps_per_dispatch
+    assert not [p for p in tmp_path.iterdir() if "tmp" in p.name]  # renamed into place
+    fresh, _ = create_train_state(POLICY, TRAIN)
+    restored, norm2, saved = restore_checkpoint(tmp_path, fresh, expected_config=config)
+    resumed, _ = loop(restored, key)
+
+    assert int(resumed.step) == int(straight.step) == 2 * TRAIN.steps_per_dispatch
+    _assert_trees_equal(resumed.params, straight.params)
+    _assert_trees_equal(resumed.ema_params, straight.ema_params)
+    _assert_trees_equal(resumed.opt_state, straight.opt_state)
+    _assert_trees_equal(norm2, norm)
+    assert config_from_dict(PolicyConfig, saved["policy"]) == POLICY
+    assert config_from_dict(TrainConfig, saved["train"]) == TRAIN
+
+
+def test_checkpoint_errors(setup, tmp_path):
+    norm = setup["norm"]
+    config = {"policy": POLICY, "train": TRAIN}
+    state, _ = create_train_state(POLICY, TRAIN)
+    with pytest.raises(FileNotFoundError, match="no completed checkpoint"):
+        restore_checkpoint(tmp_path / "nothing", state)
+    save_checkpoint(tmp_path, state, norm, config, step=3)
+    with pytest.raises(CheckpointError, match="already exists"):
+        save_checkpoint(tmp_path, state, norm, config, step=3)
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        restore_checkpoint(tmp_path, state, step=4)
+    other = {"policy": POLICY, "train": dataclasses.replace(TRAIN, sym_weight=0.3)}
+    with pytest.raises(CheckpointError, match=r"train\.sym_weight: expected 0\.3"):
+        restore_checkpoint(tmp_path, state, expected_config=other)
+    restore_checkpoint(tmp_path, state, expected_config=other, ignore_config_keys=("train.sym_weight",))
+
+    # A half-written checkpoint (orbax's temporary folder) is not a completed step.
+    (tmp_path / "9.orbax-checkpoint-tmp-123").mkdir()
+    assert latest_step(tmp_path) == 3
+
+    # A model of another shape cannot be restored into.
+    wider = jax.tree.map(lambda p: jnp.zeros(p.shape[:-1] + (p.shape[-1] + 1,)), state.params)
+    with pytest.raises(CheckpointError, match=r"(?s)arrays do not match the template.*\['encoder'\]\['pc'\]"):
+        restore_checkpoint(tmp_path, state.replace(params=wider, ema_params=wider))
+
+    # Corrupt: garbage in the state's tree metadata. (Truncating the array data files
+    # also raises CheckpointError, but orbax/tensorstore then leave callbacks on a closed
+    # event loop that pytest reports as unraisable-exception warnings in later tests.)
+    (tmp_path / "3" / "state" / "_METADATA").write_text("{not json")
+    with pytest.raises(CheckpointError, match="cannot restore"):
+        restore_checkpoint(tmp_path, state)
+    (tmp_path / "3" / "config").rename(tmp_path / "3" / "config_gone")
+    with pytest.raises(CheckpointError, match="cannot read config"):
+        restore_checkpoint(tmp_path, state)
+
+
+def test_config_json_round_trip():
+    d = config_to_dict({"policy": POLICY, "train": TRAIN})
+    d2 = json.loads(json.dumps(d))
+    assert config_from_dict(PolicyConfig, d2["policy"]) == POLICY
+    assert config_from_dict(TrainConfig, d2["train"]) == TRAIN
+    with pytest.raises(ValueError, match="unknown config fields"):
+        config_from_dict(TrainConfig, {**d2["train"], "lr": 1.0})
+    with pytest.raises(ValueError, match="sym_weight"):
+        config_from_dict(TrainConfig, {**d2["train"], "sym_weight": -1.0})
+
+
+def test_train_config_errors():
+    with pytest.raises(ValueError, match="warmup_steps"):
+        TrainConfig(warmup_steps=10, total_steps=5)
+    with pytest.raises(ValueError, match="batch_size"):
+        TrainConfig(batch_size=0)
+    with pytest.raises(ValueError, match="needs a symmetry"):
+        make_train_loop(POLICY, TrainConfig(sym_weight=1.0), None, None)
