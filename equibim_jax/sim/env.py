@@ -37,6 +37,7 @@ import numpy as np
 from flax import struct
 from mujoco import mjx
 
+from equibim_jax._batching import chunked_vmap
 from equibim_jax.sim import robots
 from equibim_jax.sim.ik import make_ik
 from equibim_jax.sim.render import CameraConfig, PointCloudConfig, make_renderer
@@ -304,6 +305,8 @@ class Env:
         d = mujoco.MjData(m)
         d.qpos[:] = m.qpos0
         mujoco.mj_kinematics(m, d)
+        mujoco.mj_comPos(m, d)
+        mujoco.mj_camlight(m, d)
         x_axis = d.cam_xmat[cid].reshape(3, 3)[:, 0]
         n = np.asarray(self.mirror.normal)
         on_plane = abs(np.dot(d.cam_xpos[cid] - np.asarray(self.mirror.point), n)) < 1e-6
@@ -437,13 +440,17 @@ class Env:
 
 
 class VmapEnv:
-    """Batches an :class:`Env`: ``reset(keys [B]) -> State [B]``, ``step(State [B], [B, A])``."""
+    """Batches an :class:`Env`: ``reset(keys [B]) -> State [B]``, ``step(State [B], [B, A])``.
 
-    def __init__(self, env: Env):
+    On the CPU, batches above 32 envs run as a ``lax.scan`` over vmapped chunks of 32
+    (see ``equibim_jax._batching``: jaxlib's batched Cholesky deadlocks on 2 cores at 64).
+    """
+
+    def __init__(self, env: Env, chunk: int | None | str = "auto"):
         self.env = env
-        self.reset = jax.vmap(env.reset)
-        self.step = jax.vmap(env.step)
-        self.mirror_state = jax.vmap(env.mirror_state)
+        self.reset = chunked_vmap(env.reset, chunk)
+        self.step = chunked_vmap(env.step, chunk)
+        self.mirror_state = chunked_vmap(env.mirror_state, chunk)
 
     def __getattr__(self, name):
         return getattr(self.env, name)

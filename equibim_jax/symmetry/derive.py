@@ -108,7 +108,7 @@ class ModelSymmetry:
       ctrl: JointMap [nu].
       bodies: int [nbody], the mirror body of each body. joints: int [njnt].
       joint_signs: float [njnt], +1/-1 for hinge and slide joints, 0 for free and ball.
-      geoms: int [ngeom]; sites: int [nsite]; cameras: int [ncam].
+      geoms: int [ngeom]; sites: int [nsite]; cameras: int [ncam] (-1: no mirror camera).
       body_local: float [nbody, 3, 3], each body's local reflection ``L`` with
         ``R_{bodies[b]} = M R_b L_b``.
       site_local: float [nsite, 3, 3], the same for sites.
@@ -164,6 +164,8 @@ class _Kin:
 def _fk(model, data, q) -> _Kin:
     data.qpos[:] = q
     mujoco.mj_kinematics(model, data)
+    mujoco.mj_comPos(model, data)
+    mujoco.mj_camlight(model, data)  # camera poses are not part of mj_kinematics
     return _Kin(
         data.xpos.copy(),
         data.xmat.reshape(-1, 3, 3).copy(),
@@ -365,11 +367,15 @@ class _Deriver:
             kin0.site_xmat, kin_b.site_xmat, bodies,
             same=lambda a, b2: True, shape_ok=lambda a, q: True,
         )
+        # Cameras do not touch physics: one without a mirror maps to -1 instead of failing;
+        # code that needs image symmetry checks its camera (see Env).
+        n_err = len(self.errors)
         cams = self.match_elements(
             "camera", m.ncam, m.cam_bodyid, kin0.cam_xpos, kin_b.cam_xpos,
             kin0.cam_xmat, kin_b.cam_xmat, bodies,
             same=lambda a, b2: abs(m.cam_fovy[a] - m.cam_fovy[b2]) < 1e-6, shape_ok=lambda a, q: True,
         )
+        del self.errors[n_err:]
         if self.errors:
             raise SymmetryError(self._msg())
         site_local = np.stack(
