@@ -1,0 +1,91 @@
+"""Scripted experts: pure-JAX state machines that produce demonstrations.
+
+Each expert is built by a factory ``make(env, config=...) -> Expert`` with
+``init(env_state) -> expert_state`` and ``act(expert_state, env_state) -> (expert_state,
+action [A])``, pure functions of one environment (``vmap`` them for batches).
+:func:`make_rollout` runs an expert in its env inside one ``lax.scan``.
+
+Example::
+
+    from equibim_jax.tasks import make_env
+    from equibim_jax.experts import make_expert, make_rollout
+    env = make_env("place_empty_cup", side="both")
+    expert = make_expert(env)
+    roll = jax.jit(jax.vmap(make_rollout(env, expert, length=250)))
+    final, traj = roll(jax.random.split(jax.random.key(0), 64))
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import jax
+
+from equibim_jax.experts.place_empty_cup import CupExpertConfig, Expert
+from equibim_jax.experts.place_empty_cup import make_expert as _make_place_empty_cup
+from equibim_jax.sim.env import Env, State
+
+__all__ = ["EXPERTS", "Expert", "CupExpertConfig", "expert_names", "make_expert", "make_rollout"]
+
+EXPERTS: dict[str, Callable[..., Expert]] = {
+    "place_empty_cup": _make_place_empty_cup,
+}
+"""Task name -> expert factory ``(env, config=...) -> Expert``."""
+
+
+def expert_names() -> list[str]:
+    """Tasks that have a scripted expert, sorted."""
+    return sorted(EXPERTS)
+
+
+def make_expert(env: Env, **kwargs) -> Expert:
+    """The scripted expert of ``env``'s task (looked up by ``env.scene.name``).
+
+    Raises ValueError when the task has no expert (the message lists those that do).
+    """
+    name = getattr(env.scene, "name", None)
+    if name not in EXPERTS:
+        raise ValueError(f"no scripted expert for task {name!r}; experts exist for {expert_names()}")
+    return EXPERTS[name](env, **kwargs)
+
+
+def make_rollout(env: Env, expert: Expert, length: int | None = None,
+                 obs: bool = True) -> Callable[[jax.Array], tuple[State, dict]]:
+    """A pure ``rollout(key) -> (final_state, traj)`` of the expert in ``env`` (one env).
+
+    Args:
+      env: the environment.
+      expert: its :class:`Expert`.
+      length: control steps (default: the env's ``episode_length``).
+      obs: whether to record the observations (memory: ``[T, ...]`` per field).
+
+    Returns:
+      ``rollout(key)``: ``final_state`` after ``length`` steps and ``traj``, a dict of
+      ``[T, ...]`` arrays: ``action`` [T, A], ``success`` [T] (latched), ``reward`` [T],
+      ``qpos`` [T, nq] (after each step), ``obs`` (dict of [T, ...], the observation
+      each action was chosen from) when ``obs`` is True. ``jit``/``vmap`` it.
+    """
+    n = int(length if length is not None else env.config.episode_length)
+
+    def rollout(key: jax.Array):
+        s0 = env.reset(key)
+        return run_from(s0)
+
+    def run_from(s0: State):
+        e0 = expert.init(s0)
+
+        def body(carry, _):
+            s, e = carry
+            e, a = expert.act(e, s)
+            s2 = env.step(s, a)
+            out = {"action": a, "success": s2.info["success"], "reward": s2.reward,
+                   "qpos": s2.data.qpos}
+            if obs:
+                out["obs"] = s.obs
+            return (s2, e), out
+
+        (s, _), traj = jax.lax.scan(body, (s0, e0), None, length=n)
+        return s, traj
+
+    rollout.from_state = run_from  # type: ignore[attr-defined]
+    return rollout
