@@ -64,14 +64,18 @@ def make_rollout(env: Env, expert: Expert, length: int | None = None,
       ``[T, ...]`` arrays: ``action`` [T, A], ``success`` [T] (latched), ``reward`` [T],
       ``qpos`` [T, nq] (after each step), ``obs`` (dict of [T, ...], the observation
       each action was chosen from) when ``obs`` is True. ``jit``/``vmap`` it.
+      ``rollout.from_state(state)`` does the same from a given initial env state (e.g.
+      ``env.mirror_state(s0)``).
     """
     n = int(length if length is not None else env.config.episode_length)
 
     def rollout(key: jax.Array):
+        """Reset from ``key`` and run the expert for ``n`` steps."""
         s0 = env.reset(key)
         return run_from(s0)
 
     def run_from(s0: State):
+        """Run the expert for ``n`` steps from the env state ``s0``."""
         e0 = expert.init(s0)
 
         def body(carry, _):

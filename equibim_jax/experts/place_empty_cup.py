@@ -127,6 +127,7 @@ class CupExpertConfig:
 
     @property
     def horizon(self) -> int:
+        """Steps of the scripted part (sum of ``durations``)."""
         return int(sum(self.durations))
 
 
@@ -162,6 +163,7 @@ def make_expert(env: Env, config: CupExpertConfig = CupExpertConfig()) -> Expert
     coaster_top_above_centre = scene.coaster_half[2]
 
     def init(state: State) -> CupExpertState:
+        """Plan the waypoints from the initial cup/coaster positions of ``state``."""
         data = state.data
         q = data.qpos
         cup, _ = scene.cup_pose(data, env)
@@ -213,6 +215,7 @@ def make_expert(env: Env, config: CupExpertConfig = CupExpertConfig()) -> Expert
         return a + w * (b - a)
 
     def act(es: CupExpertState, state: State) -> tuple[CupExpertState, jax.Array]:
+        """One control step: (next expert state, joint action [2 * (n_arm + 1)])."""
         del state  # open loop after init (see the module docstring)
         tgt = target(es)
         pos, mat = fk(es.q)
