@@ -6,11 +6,16 @@ import dataclasses
 import time
 from typing import Annotated, Union
 
+from pathlib import Path
+
 import tyro
+
+from equibim_jax.experiments.demo import DemoConfig
+from equibim_jax.experiments.pipeline import EnvSpec, ModelOptions
 
 
 @dataclasses.dataclass
-class Demo:
+class SymmetryDemo:
     """Derive the mirror S of a robot from its MJCF and print the joint map and its residual."""
 
     robot: str = "robot_a"
@@ -48,15 +53,140 @@ class Robots:
             print(n)
 
 
+def _command_line(argv: list[str] | None) -> str:
+    import shlex
+    import sys
+
+    return "equibim " + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
+
+
+@dataclasses.dataclass
+class Demo:
+    """The main experiment: baseline vs +EquiBim, demos from one side, evaluated on both.
+
+    Generates expert demos, trains two diffusion policies that differ only in L_sym,
+    evaluates both in closed loop on the trained and the mirrored side, prints the table,
+    and writes results/demo.json and results/demo.png.
+    """
+
+    config: Annotated[DemoConfig, tyro.conf.arg(name="")] = dataclasses.field(default_factory=DemoConfig)
+
+    def run(self, argv=None) -> None:
+        from equibim_jax.experiments.demo import format_table, run_demo
+
+        res = run_demo(self.config, command=_command_line(argv))
+        out = Path(self.config.out_dir)
+        t = res["timings"]
+        print(f"\n{res['task']}: {res['demos']['episodes']} expert demos on the {res['trained_side']} "
+              f"side, {self.config.train_steps} training steps per policy, "
+              f"{self.config.eval_episodes} closed-loop episodes per side\n")
+        print(format_table(res))
+        eq = [f"{n}: {res[n]['train']['final']['equiv_err']:.3f}" for n in ("baseline", "equibim")]
+        print(f"\nrelative equivariance error of the noise prediction at the end: {', '.join(eq)}")
+        print(f"wall time {res['wall_time_s']:.0f} s (generate {t['generate_s']:.0f} s, train "
+              f"{t['train_baseline_s']:.0f} + {t['train_equibim_s']:.0f} s, eval {t['eval_s']:.0f} s; "
+              f"compile included)")
+        print(f"wrote {out / 'demo.json'} and {out / 'demo.png'}")
+
+
+@dataclasses.dataclass
+class Generate:
+    """Roll out a task's scripted expert in batched MJX and save the successful episodes (zarr)."""
+
+    out: str
+    """Dataset path to write (a .zarr directory)."""
+    env: EnvSpec = dataclasses.field(default_factory=EnvSpec)
+    n_episodes: int = 24
+    """Successful episodes to keep."""
+    seed: int = 0
+    overwrite: bool = False
+    """Replace an existing dataset at --out."""
+
+    def run(self, argv=None) -> None:
+        from equibim_jax.experiments.pipeline import generate_dataset
+
+        demos, stats = generate_dataset(self.env, self.out, self.n_episodes, seed=self.seed,
+                                        overwrite=self.overwrite)
+        print(f"wrote {self.out}: {demos.n_episodes} episodes, {int(demos.length.sum())} steps; "
+              f"expert success {stats['successes']}/{stats['attempts']} in {stats['wall_s']:.1f} s")
+
+
+@dataclasses.dataclass
+class Train:
+    """Train a diffusion policy (sym_weight > 0 adds L_sym); resumes from --out if it holds a checkpoint."""
+
+    data: str
+    """Dataset written by `equibim generate`."""
+    out: str
+    """Run folder: ckpt/ and train.jsonl."""
+    model: ModelOptions = dataclasses.field(default_factory=ModelOptions)
+    sym_weight: float = 1.0
+    """lambda of L_sym (0 = plain behaviour cloning)."""
+    steps: int = 1000
+    batch_size: int = 64
+    learning_rate: float = 3e-3
+    warmup_steps: int = 50
+    steps_per_dispatch: int = 50
+    checkpoint_every: int | None = None
+    """Steps between checkpoints (default: at the end only)."""
+    seed: int = 0
+
+    def run(self, argv=None) -> None:
+        from equibim_jax.experiments.pipeline import train_policy
+        from equibim_jax.training import TrainConfig
+
+        tc = TrainConfig(batch_size=self.batch_size, learning_rate=self.learning_rate,
+                         total_steps=self.steps, warmup_steps=min(self.warmup_steps, self.steps),
+                         steps_per_dispatch=self.steps_per_dispatch, sym_weight=self.sym_weight,
+                         seed=self.seed)
+        s = train_policy(self.data, self.out, self.model, tc, checkpoint_every=self.checkpoint_every)
+        f = s["final"]
+        print(f"trained to step {s['steps']} in {s['train_s']:.1f} s: bc {f.get('bc', float('nan')):.4f}, "
+              f"sym {f.get('sym', float('nan')):.4f}, equivariance error {f.get('equiv_err', float('nan')):.4f}; "
+              f"checkpoint {s['checkpoint']}, log {s['log']}")
+
+
+@dataclasses.dataclass
+class Eval:
+    """Closed-loop success of a trained policy on its trained side and the mirrored side."""
+
+    run_dir: tyro.conf.Positional[str]
+    """Run folder written by `equibim train`."""
+    episodes: int = 64
+    """Episodes per side."""
+    seed: int = 1
+    out: str | None = None
+    """Also write the results as JSON here."""
+
+    def run(self, argv=None) -> None:
+        from equibim_jax._io import atomic_write_json
+        from equibim_jax.experiments.pipeline import evaluate_checkpoint
+
+        res = evaluate_checkpoint(self.run_dir, self.episodes, seed=self.seed)
+        for side, r in res.items():
+            lo, hi = r["ci95"]
+            print(f"{side:<9} success {r['success']:.3f}  95% CI [{lo:.3f}, {hi:.3f}]  "
+                  f"({r['successes']}/{r['episodes']})")
+        if self.out:
+            atomic_write_json(self.out, {**res, "command": _command_line(argv)})
+
+
 Command = Union[
     Annotated[Demo, tyro.conf.subcommand("demo")],
+    Annotated[Generate, tyro.conf.subcommand("generate")],
+    Annotated[Train, tyro.conf.subcommand("train")],
+    Annotated[Eval, tyro.conf.subcommand("eval")],
+    Annotated[SymmetryDemo, tyro.conf.subcommand("symmetry")],
     Annotated[Robots, tyro.conf.subcommand("robots")],
 ]
 
 
 def main(argv: list[str] | None = None) -> None:
     cmd = tyro.cli(Command, args=argv)
-    cmd.run()
+    if isinstance(cmd, (Demo, Generate, Train, Eval)):
+        cmd.run(argv)
+    else:
+        cmd.run()
 
 
 if __name__ == "__main__":

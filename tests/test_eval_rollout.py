@@ -2,9 +2,10 @@
 
 import jax
 import numpy as np
+import pytest
 
 from equibim_jax.data import fit_normalizer
-from equibim_jax.evaluation.rollout import evaluate, make_policy_rollout
+from equibim_jax.evaluation.rollout import evaluate, evaluate_sides, make_policy_rollout, summarize
 from equibim_jax.policies import EncoderConfig, PolicyConfig, UNetConfig, init_params
 from equibim_jax.sim.env import Env, EnvConfig
 from equibim_jax.sim.scenes import BoxScene
@@ -37,3 +38,48 @@ def test_policy_rollout_runs_chunks_and_is_deterministic():
     assert np.abs(np.asarray(a["final_qpos"])[:, :14] - np.asarray(s.data.qpos)[:14]).max() > 1e-3
     summary = evaluate(roll, params, jax.random.key(3), 2, chunk=2)
     assert summary["episodes"] == 2 and 0.0 <= summary["ci95"][0] <= summary["ci95"][1] <= 1.0
+
+
+def test_mirrored_rollout_starts_from_the_mirror_image_and_sides_are_paired():
+    env = Env(EnvConfig(obs=("qpos", "point_cloud"), n_points=32, episode_length=8), BoxScene())
+    cfg = PolicyConfig(
+        action_dim=env.action_size, state_dim=env.action_size, obs_horizon=1, pred_horizon=4,
+        action_horizon=4, encoder=EncoderConfig(pc_hidden=(8,), pc_out=8, state_out=8, state_hidden=(8,)),
+        unet=UNetConfig(down_dims=(8,)), num_inference_steps=2,
+    )
+    model, params = init_params(cfg, jax.random.key(0))
+    s = env.reset(jax.random.key(1))
+    frames = {"qpos": np.asarray(s.obs["qpos"])[None] + np.random.default_rng(0).normal(0, 0.1, (20, 14)),
+              "point_cloud": np.asarray(s.obs["point_cloud"])[None].repeat(20, 0),
+              "action": np.asarray(s.obs["qpos"])[None].repeat(20, 0)}
+    sym = {"qpos": env.obs_symmetry.ops["qpos"], "point_cloud": env.obs_symmetry.ops["point_cloud"],
+           "action": env.action_symmetry}
+    norm = fit_normalizer(frames, sym)
+    # Zero steps: the "final" state is the start state.
+    roll0 = make_policy_rollout(env, model, norm, length=0)
+    key = jax.random.key(5)
+    k_reset = jax.random.split(key)[0]
+    start = env.reset(k_reset)
+    plain = jax.jit(roll0)(params, key, False)
+    mirr = jax.jit(roll0)(params, key, True)
+    np.testing.assert_array_equal(np.asarray(plain["final_qpos"]), np.asarray(start.data.qpos))
+    np.testing.assert_allclose(np.asarray(mirr["final_qpos"]),
+                               np.asarray(env.mirror_state(start).data.qpos), atol=1e-6)
+    assert not np.allclose(np.asarray(mirr["final_qpos"]), np.asarray(plain["final_qpos"]))
+    # Both sides through one compiled function; same episode count and keys per side.
+    roll = make_policy_rollout(env, model, norm)
+    res = evaluate_sides(roll, params, jax.random.key(3), 3, chunk=2)
+    assert set(res) == {"trained", "mirrored"}
+    for r in res.values():
+        assert r["episodes"] == 3 and len(r["per_episode"]) == 3 and len(r["first_success_step"]) == 3
+    with pytest.raises(ValueError, match="sides"):
+        evaluate_sides(roll, params, jax.random.key(3), 2, sides=("left",))
+
+
+def test_summarize_matches_wilson():
+    r = summarize([True, False, True, True])
+    assert r["episodes"] == 4 and r["successes"] == 3 and r["success"] == 0.75
+    lo, hi = r["ci95"]
+    assert lo < 0.75 < hi
+    with pytest.raises(ValueError):
+        summarize([])

@@ -1,0 +1,128 @@
+"""A tiny end-to-end run of the demo path (generate -> normaliser -> two trainings -> eval on
+both sides -> table, JSON, plot), then the `equibim train` / `eval` subcommands on its
+dataset (resume included).
+
+Tiny means: 2 demos, 16-point clouds, a small network, 4 training steps, 2 episodes per side.
+It checks the plumbing and the output contract, not the success rates (see the README for a
+real run).
+"""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from equibim_jax.cli import main
+from equibim_jax.experiments.demo import DemoConfig, format_table, run_demo
+from equibim_jax.experiments.pipeline import EnvSpec, ModelOptions, env_spec_of, load_policy
+from equibim_jax.data.dataset import DatasetError, load
+
+MODEL = ModelOptions(down_dims=(8, 16), pc_hidden=(16,), pc_out=16, state_out=16,
+                     pred_horizon=8, action_horizon=4, num_inference_steps=2)
+MODEL_FLAGS = ["--model.down-dims", "8", "16", "--model.pc-hidden", "16", "--model.pc-out", "16",
+               "--model.state-out", "16", "--model.pred-horizon", "8", "--model.action-horizon", "4",
+               "--model.num-inference-steps", "2"]
+ENV = EnvSpec(n_points=16, episode_length=212)
+
+
+@pytest.fixture(scope="module")
+def tiny_demo(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo")
+    cfg = DemoConfig(env=ENV, n_demos=2, model=MODEL, batch_size=8, train_steps=4,
+                     steps_per_dispatch=2, warmup_steps=1, eval_episodes=2, out_dir=str(out))
+    res = run_demo(cfg, command="pytest tiny demo", progress=False)
+    return out, res
+
+
+def test_demo_outputs(tiny_demo):
+    out, res = tiny_demo
+    saved = json.loads((out / "demo.json").read_text())
+    for name in ("baseline", "equibim"):
+        for side in ("trained_side", "mirrored_side"):
+            r = saved[name][side]
+            assert r["episodes"] == 2 and isinstance(r["success"], float)
+            lo, hi = r["ci95"]
+            assert 0.0 <= lo <= r["success"] <= hi <= 1.0
+            assert len(r["per_episode"]) == 2
+    assert saved["baseline"]["sym_weight"] == 0.0 and saved["equibim"]["sym_weight"] == 1.0
+    assert saved["wall_time_s"] > 0 and saved["command"] == "pytest tiny demo"
+    assert saved["demos"]["episodes"] == 2
+    # The baseline never ran the mirrored branch; +EquiBim did (its L_sym term is logged).
+    assert saved["baseline"]["train"]["final"]["sym"] == 0.0
+    assert saved["equibim"]["train"]["final"]["sym"] > 0.0
+    for name in ("baseline", "equibim"):
+        rows = [json.loads(l) for l in (out / "demo" / name / "train.jsonl").read_text().splitlines()]
+        assert [r["step"] for r in rows] == [2, 4]
+        assert all(np.isfinite(r["equiv_err"]) and r["equiv_err"] >= 0 for r in rows)
+    png = (out / "demo.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
+    table = format_table(res)
+    assert "baseline" in table and "equibim" in table and "mirrored (right)" in table
+
+
+def test_demo_dataset_is_left_only_and_rebuildable(tiny_demo):
+    out, _ = tiny_demo
+    demos = load(out / "demo" / "demos.zarr")
+    assert np.all(demos.side == 1.0) and np.all(demos.success)
+    assert env_spec_of(demos) == ENV
+    # Both runs share one normaliser (saved with each checkpoint).
+    _, _, n_base, _ = load_policy(out / "demo" / "baseline")
+    _, _, n_eq, _ = load_policy(out / "demo" / "equibim")
+    for a, b in zip(*(jax_leaves(n.to_state_dict()) for n in (n_base, n_eq))):
+        np.testing.assert_array_equal(a, b)
+
+
+def jax_leaves(tree):
+    import jax
+
+    return [np.asarray(x) for x in jax.tree.leaves(tree)]
+
+
+def test_cli_train_resume_is_exact_and_eval(tiny_demo, tmp_path, capsys):
+    out, _ = tiny_demo
+    data = str(out / "demo" / "demos.zarr")
+    common = ["train", "--data", data, "--batch-size", "8", "--steps", "4",
+              "--steps-per-dispatch", "2", "--warmup-steps", "1", *MODEL_FLAGS]
+    main(common + ["--out", str(tmp_path / "straight")])
+    assert "trained to step 4" in capsys.readouterr().out
+    # Same run with a checkpoint at step 2, then "crash" after it: drop the step-4 checkpoint.
+    run = tmp_path / "run"
+    main(common + ["--out", str(run), "--checkpoint-every", "2"])
+    shutil.rmtree(run / "ckpt" / "4")
+    main(common + ["--out", str(run), "--checkpoint-every", "2"])  # resumes from step 2
+    rows = [json.loads(l) for l in (run / "train.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [2, 4]
+    _, a, _, _ = load_policy(tmp_path / "straight")
+    _, b, _, _ = load_policy(run)
+    for x, y in zip(jax_leaves(a.ema_params), jax_leaves(b.ema_params)):
+        np.testing.assert_array_equal(x, y)
+    # A changed setting is refused rather than silently mixed into the old run.
+    with pytest.raises(Exception, match="different config"):
+        main(common + ["--out", str(run), "--sym-weight", "0.5"])
+    main(["eval", str(run), "--episodes", "2", "--out", str(tmp_path / "eval.json")])
+    printed = capsys.readouterr().out
+    assert "trained" in printed and "mirrored" in printed
+    res = json.loads((tmp_path / "eval.json").read_text())
+    assert res["trained"]["episodes"] == 2 and res["mirrored"]["episodes"] == 2
+
+
+def test_cli_generate_refuses_to_overwrite(tiny_demo, capsys):
+    out, _ = tiny_demo
+    before = sorted(p.name for p in (out / "demo" / "demos.zarr").iterdir())
+    with pytest.raises(FileExistsError, match="overwrite"):
+        main(["generate", "--out", str(out / "demo" / "demos.zarr"), "--n-episodes", "1"])
+    assert sorted(p.name for p in (out / "demo" / "demos.zarr").iterdir()) == before
+    load(out / "demo" / "demos.zarr")
+
+
+def test_train_rejects_a_dataset_without_env_spec(tmp_path):
+    from equibim_jax.data.dataset import Demos, save
+    from equibim_jax.experiments.pipeline import train_policy
+
+    demos = Demos(obs={"qpos": np.zeros((1, 4, 14), np.float32)}, action=np.zeros((1, 4, 14), np.float32),
+                  length=np.array([4], np.int32), success=np.array([True]),
+                  side=np.array([1.0], np.float32), meta={"task": "place_empty_cup"})
+    save(demos, tmp_path / "d.zarr")
+    with pytest.raises(DatasetError, match="env_spec"):
+        train_policy(tmp_path / "d.zarr", tmp_path / "run")
