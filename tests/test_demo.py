@@ -55,6 +55,11 @@ def test_demo_outputs(tiny_demo):
         rows = [json.loads(l) for l in (out / "demo" / name / "train.jsonl").read_text().splitlines()]
         assert [r["step"] for r in rows] == [2, 4]
         assert all(np.isfinite(r["equiv_err"]) and r["equiv_err"] >= 0 for r in rows)
+    for name in ("baseline", "equibim"):
+        ol = saved[name]["open_loop_error"]
+        for which in ("demos", "mirrored_demos"):
+            assert np.isfinite(ol[which]["arm_rad"]) and ol[which]["arm_rad"] > 0
+            assert 0 <= ol[which]["gripper"] <= 1
     png = (out / "demo.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
     table = format_table(res)
@@ -126,3 +131,16 @@ def test_train_rejects_a_dataset_without_env_spec(tmp_path):
     save(demos, tmp_path / "d.zarr")
     with pytest.raises(DatasetError, match="env_spec"):
         train_policy(tmp_path / "d.zarr", tmp_path / "run")
+
+
+def test_bad_settings_are_refused_with_a_clear_message():
+    with pytest.raises(ValueError, match="side"):
+        EnvSpec(side="middle")
+    with pytest.raises(ValueError, match="unknown task"):
+        EnvSpec(task="fold_towel")
+    with pytest.raises(ValueError, match="trained side"):
+        DemoConfig(env=EnvSpec(side="both"))
+    with pytest.raises(ValueError, match="multiple of"):
+        DemoConfig(train_steps=120, steps_per_dispatch=50)
+    with pytest.raises(ValueError, match="sym_weight"):
+        DemoConfig(sym_weight=0.0)
