@@ -60,6 +60,7 @@ __all__ = [
     "train_policy",
     "load_policy",
     "evaluate_policies",
+    "open_loop_errors",
     "evaluate_checkpoint",
 ]
 
