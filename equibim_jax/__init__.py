@@ -16,8 +16,21 @@ del _enable_from_env
 
 __version__ = "0.1.0"
 
+
+
+def __getattr__(name):
+    # ``make_env`` / ``task_names`` load MuJoCo and MJX, so they are imported on first use.
+    if name in ("make_env", "task_names"):
+        from equibim_jax import tasks
+
+        return getattr(tasks, name)
+    raise AttributeError(f"module 'equibim_jax' has no attribute {name!r}")
+
+
 __all__ = [
     "__version__",
+    "make_env",
+    "task_names",
     "compilation_cache_dir",
     "disable_compilation_cache",
     "enable_compilation_cache",

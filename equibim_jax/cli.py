@@ -122,6 +122,10 @@ class Train:
     model: ModelOptions = dataclasses.field(default_factory=ModelOptions)
     sym_weight: float = 1.0
     """lambda of L_sym (0 = plain behaviour cloning)."""
+    sym_stop_gradient: bool = False
+    """Treat S(pi(O)) in L_sym as a fixed target: only the mirrored prediction is pulled."""
+    mirror_augment: bool = False
+    """Also fit the mirrored demos by BC (mirror data augmentation, a baseline to EquiBim)."""
     steps: int = 1000
     batch_size: int = 64
     learning_rate: float = 3e-3
@@ -138,7 +142,8 @@ class Train:
         tc = TrainConfig(batch_size=self.batch_size, learning_rate=self.learning_rate,
                          total_steps=self.steps, warmup_steps=min(self.warmup_steps, self.steps),
                          steps_per_dispatch=self.steps_per_dispatch, sym_weight=self.sym_weight,
-                         seed=self.seed)
+                         sym_stop_gradient=self.sym_stop_gradient,
+                         mirror_augment=self.mirror_augment, seed=self.seed)
         s = train_policy(self.data, self.out, self.model, tc, checkpoint_every=self.checkpoint_every)
         f = s["final"]
         print(f"trained to step {s['steps']} in {s['train_s']:.1f} s: bc {f.get('bc', float('nan')):.4f}, "

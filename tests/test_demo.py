@@ -45,7 +45,7 @@ def test_demo_outputs(tiny_demo):
             lo, hi = r["ci95"]
             assert 0.0 <= lo <= r["success"] <= hi <= 1.0
             assert len(r["per_episode"]) == 2
-    assert saved["baseline"]["sym_weight"] == 0.0 and saved["equibim"]["sym_weight"] == 1.0
+    assert saved["baseline"]["sym_weight"] == 0.0 and saved["equibim"]["sym_weight"] == cfg.sym_weight > 0
     assert saved["wall_time_s"] > 0 and saved["command"] == "pytest tiny demo"
     assert saved["demos"]["episodes"] == 2
     # The baseline never ran the mirrored branch; +EquiBim did (its L_sym term is logged).
@@ -144,6 +144,15 @@ def test_bad_settings_are_refused_with_a_clear_message():
         DemoConfig(train_steps=120, steps_per_dispatch=50)
     with pytest.raises(ValueError, match="sym_weight"):
         DemoConfig(sym_weight=0.0)
+
+
+def test_demo_train_configs_differ_only_in_l_sym():
+    cfg = DemoConfig(sym_stop_gradient=True)
+    base, eq = cfg.train_config(0.0), cfg.train_config(cfg.sym_weight)
+    assert (base.sym_weight, base.sym_stop_gradient, base.uses_mirror) == (0.0, False, False)
+    assert (eq.sym_weight, eq.sym_stop_gradient, eq.uses_mirror) == (cfg.sym_weight, True, True)
+    import dataclasses
+    assert dataclasses.replace(eq, sym_weight=0.0, sym_stop_gradient=False) == base
 
 
 def test_mirrored_demo_replays_as_a_right_side_success(tiny_demo):

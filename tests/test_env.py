@@ -157,3 +157,23 @@ class _SideCamera(Scene):
 def test_camera_off_the_mirror_plane_is_refused():
     with pytest.raises(ValueError, match="not on the mirror plane"):
         Env(EnvConfig(obs=("qpos", "image"), camera="side_cam"), _SideCamera())
+
+
+def test_point_cloud_crop_option_and_checks():
+    with pytest.raises(ValueError, match="crop must be"):
+        EnvConfig(crop=((0.0, -0.1, 0.0), (0.0, 0.1, 0.2)))  # min == max in x
+    with pytest.raises(ValueError, match="crop must be"):
+        EnvConfig(crop=((0.0, 0.0), (1.0, 1.0)))
+    # A box that is not its own mirror image would break point_cloud(mirror(s)) == S(cloud).
+    with pytest.raises(ValueError, match="not symmetric about the mirror plane"):
+        Env(EnvConfig(obs=("qpos", "point_cloud"), crop=((0.1, -0.2, 0.0), (0.5, 0.3, 0.3))),
+            BoxScene(side="both"))
+    crop = ((0.1, -0.25, 0.002), (0.5, 0.25, 0.3))
+    env = Env(EnvConfig(obs=("qpos", "point_cloud"), n_points=32, crop=crop), BoxScene(side="both"))
+    assert env.crop == crop
+    pts = np.asarray(jax.jit(env.reset)(jax.random.key(1)).obs["point_cloud"])
+    assert pts.shape == (32, 3)
+    assert np.all(pts >= np.array(crop[0]) - 1e-6) and np.all(pts <= np.array(crop[1]) + 1e-6)
+    # Without a crop the robot's workspace applies (its arms at rest are in the cloud).
+    default = Env(EnvConfig(obs=("qpos", "point_cloud"), n_points=32), BoxScene(side="both"))
+    assert default.crop == (tuple(default.info.workspace_min), tuple(default.info.workspace_max))

@@ -103,6 +103,11 @@ def test_initial_distribution():
     assert np.all(np.abs(coaster[:, 1]) <= np.abs(cup[:, 1]) - scene.min_gap + 1e-6)  # nearer the centre
     assert np.all(np.abs(coaster[:, 1]) >= scene.coaster_y_min - 1e-6)
     np.testing.assert_allclose(cup[:, 2], scene.cup_half[2], atol=1e-6)  # resting on the table
+    # The point-cloud crop holds every cup and coaster the distribution can place.
+    lo, hi = (np.asarray(c) for c in scene.point_cloud_crop)
+    for centre, half in ((cup, np.asarray(scene.cup_half)), (coaster, np.asarray(scene.coaster_half))):
+        assert np.all(centre[:, :2] - half[:2] >= lo[:2]) and np.all(centre[:, :2] + half[:2] <= hi[:2])
+        assert np.all(centre[:, 2] + half[2] <= hi[2])
     # the arms start at home
     np.testing.assert_allclose(np.asarray(qpos)[:, : env.info.nq_robot],
                                np.broadcast_to(env.home_qpos[: env.info.nq_robot], (len(keys), env.info.nq_robot)))
@@ -111,6 +116,23 @@ def test_initial_distribution():
         e = _env(side_opt)
         _, inf = jax.vmap(lambda k: e.scene.init(k, e))(keys[:16])
         assert np.all(np.asarray(inf["side"]) == sgn)
+
+
+def test_point_cloud_sees_cup_and_coaster_and_mirrors():
+    env = make_env("place_empty_cup", side="both", obs=("qpos", "point_cloud"), n_points=64)
+    s = jax.jit(env.reset)(jax.random.key(5))
+    sm = jax.jit(env.mirror_state)(s)
+    pts, pts_m = np.asarray(s.obs["point_cloud"]), np.asarray(sm.obs["point_cloud"])
+    cup, coaster = (np.asarray(v) for v in env.scene.positions_from_qpos(s.data.qpos, env))
+    lo, hi = (np.asarray(c) for c in env.crop)
+    assert np.all((pts >= lo - 1e-6) & (pts <= hi + 1e-6))
+    near = lambda c, r: np.linalg.norm(pts[:, :2] - c[:2], axis=1) < r
+    assert near(cup, 0.05).sum() >= 8 and near(coaster, 0.06).sum() >= 8
+    assert np.all(near(cup, 0.05) | near(coaster, 0.06))  # nothing else at the arms' rest pose
+    # The mirrored state's cloud is the reflected cloud (as a set of points; the mirror plane is y = 0).
+    key = lambda p: np.lexsort(np.round(p, 5).T[::-1])
+    ref = pts * np.array([1.0, -1.0, 1.0])
+    np.testing.assert_allclose(ref[key(ref)], pts_m[key(pts_m)], atol=1e-5)
 
 
 # ---------------------------------------------------------------------------- predicate

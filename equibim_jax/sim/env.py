@@ -92,6 +92,10 @@ class EnvConfig:
         whole multiple of it.
       image_size: square image side for ``image`` / ``depth`` (64, 96, 128, ...).
       n_points: points in ``point_cloud``.
+      crop: ``(min [3], max [3])`` world-frame box the point cloud is cropped to, or
+        ``None`` for the scene's ``point_cloud_crop`` if it sets one, else the robot's
+        workspace. The box must be its own mirror image (checked), so that the cloud of a
+        mirrored state is the mirrored cloud.
       episode_length: control steps before ``done``.
       camera: camera for images; ``None`` takes the robot's camera on the mirror plane.
       solver_iterations, ls_iterations: MJX solver settings (``None`` keeps the model's).
@@ -110,6 +114,7 @@ class EnvConfig:
     sim_dt: float | None = None
     image_size: int = 64
     n_points: int = 512
+    crop: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     episode_length: int = 500
     camera: str | None = None
     solver_iterations: int | None = None
@@ -141,6 +146,14 @@ class EnvConfig:
             raise ValueError(f"image_size must be an int >= 8, got {self.image_size!r}")
         if not isinstance(self.n_points, int) or self.n_points < 1:
             raise ValueError(f"n_points must be a positive int, got {self.n_points!r}")
+        if self.crop is not None:
+            try:
+                lo, hi = (tuple(float(v) for v in c) for c in self.crop)
+            except (TypeError, ValueError):
+                lo = hi = ()
+            if len(lo) != 3 or len(hi) != 3 or any(a >= b for a, b in zip(lo, hi)):
+                raise ValueError(f"crop must be ((x, y, z) min, (x, y, z) max) with min < max, got {self.crop!r}")
+            object.__setattr__(self, "crop", (lo, hi))
         if not isinstance(self.episode_length, int) or self.episode_length < 1:
             raise ValueError(f"episode_length must be a positive int, got {self.episode_length!r}")
 
@@ -153,6 +166,8 @@ class Scene:
     """
 
     name = "empty"
+    point_cloud_crop: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    """World-frame ``(min, max)`` box for the point cloud (``None``: the robot's workspace)."""
 
     def build(self, spec: mujoco.MjSpec, info: robots.RobotInfo) -> None:
         """Add bodies, geoms, sites or cameras to the robot's spec."""
@@ -221,6 +236,7 @@ class Env:
 
         self.camera = config.camera or self.info.camera
         self.renderer = None
+        self.crop = self._point_cloud_crop()
         if any(f in config.obs for f in ("image", "depth", "point_cloud")):
             self._check_camera_on_plane()
             outputs = tuple(
@@ -231,8 +247,7 @@ class Env:
                 camera=self.camera, width=config.image_size, height=config.image_size,
                 outputs=outputs,
                 point_cloud=PointCloudConfig(
-                    n_points=config.n_points, workspace_min=self.info.workspace_min,
-                    workspace_max=self.info.workspace_max,
+                    n_points=config.n_points, workspace_min=self.crop[0], workspace_max=self.crop[1],
                 ),
             )
             self.renderer = make_renderer(model, cam_cfg)
@@ -296,6 +311,24 @@ class Env:
         obs_sym = Symmetry({k: ops[k] for k in self.config.obs})
         act_sym = joint if self.config.action == "joint" else ee
         return obs_sym, act_sym
+
+    def _point_cloud_crop(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """The point-cloud crop box, checked to be its own mirror image."""
+        crop = self.config.crop or self.scene.point_cloud_crop
+        if crop is None:
+            return tuple(self.info.workspace_min), tuple(self.info.workspace_max)
+        lo, hi = (np.asarray(c, np.float64) for c in crop)
+        corners = np.array([[(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]]
+                            for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+        n = np.asarray(self.mirror.normal, np.float64)
+        p0 = np.asarray(self.mirror.point, np.float64)
+        mirrored = corners - 2 * ((corners - p0) @ n)[:, None] * n
+        if np.any(mirrored < lo - 1e-6) or np.any(mirrored > hi + 1e-6):
+            raise ValueError(
+                f"point-cloud crop {crop} is not symmetric about the mirror plane (point {p0}, "
+                f"normal {n}); the cloud of a mirrored state would not be the mirrored cloud"
+            )
+        return tuple(map(float, lo)), tuple(map(float, hi))
 
     def _check_camera_on_plane(self):
         m = self.mj_model
