@@ -45,7 +45,7 @@ def test_demo_outputs(tiny_demo):
             lo, hi = r["ci95"]
             assert 0.0 <= lo <= r["success"] <= hi <= 1.0
             assert len(r["per_episode"]) == 2
-    assert saved["baseline"]["sym_weight"] == 0.0 and saved["equibim"]["sym_weight"] == cfg.sym_weight > 0
+    assert saved["baseline"]["sym_weight"] == 0.0 and saved["equibim"]["sym_weight"] == DemoConfig().sym_weight > 0
     assert saved["wall_time_s"] > 0 and saved["command"] == "pytest tiny demo"
     assert saved["demos"]["episodes"] == 2
     # The baseline never ran the mirrored branch; +EquiBim did (its L_sym term is logged).
