@@ -3,7 +3,7 @@ PY ?= python3
 VENV := .venv
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: demo test test-slow bench venv clean
+.PHONY: demo demo-long test test-slow bench venv clean
 
 $(STAMP): pyproject.toml
 	test -x $(VENV)/bin/python || $(PY) -m venv $(VENV)
@@ -15,6 +15,9 @@ venv: $(STAMP)
 
 demo: $(STAMP)
 	$(VENV)/bin/equibim demo
+
+demo-long: $(STAMP)
+	$(VENV)/bin/equibim demo --train-steps 10000 --out-dir results/demo10k
 
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest -m "not slow" -q
