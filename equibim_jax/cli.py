@@ -120,10 +120,14 @@ class Train:
     out: str
     """Run folder: ckpt/ and train.jsonl."""
     model: ModelOptions = dataclasses.field(default_factory=ModelOptions)
-    sym_weight: float = 1.0
+    sym_weight: float = 0.1
     """lambda of L_sym (0 = plain behaviour cloning)."""
     sym_stop_gradient: bool = False
     """Treat S(pi(O)) in L_sym as a fixed target: only the mirrored prediction is pulled."""
+    sym_norm: str = "l2"
+    """L_sym as the paper's unsquared per-sample norm (l2) or the squared error (mse)."""
+    sym_warmup_steps: int = 0
+    """Ramp lambda linearly from 0 over this many steps (0: constant)."""
     mirror_augment: bool = False
     """Also fit the mirrored demos by BC (mirror data augmentation, a baseline to EquiBim)."""
     steps: int = 1000
@@ -142,7 +146,8 @@ class Train:
         tc = TrainConfig(batch_size=self.batch_size, learning_rate=self.learning_rate,
                          total_steps=self.steps, warmup_steps=min(self.warmup_steps, self.steps),
                          steps_per_dispatch=self.steps_per_dispatch, sym_weight=self.sym_weight,
-                         sym_stop_gradient=self.sym_stop_gradient,
+                         sym_stop_gradient=self.sym_stop_gradient, sym_norm=self.sym_norm,
+                         sym_warmup_steps=min(self.sym_warmup_steps, self.steps),
                          mirror_augment=self.mirror_augment, seed=self.seed)
         s = train_policy(self.data, self.out, self.model, tc, checkpoint_every=self.checkpoint_every)
         f = s["final"]

@@ -26,6 +26,7 @@ from equibim_jax.training import (
     restore_checkpoint,
     save_checkpoint,
     sym_loss,
+    sym_ramp,
     window_indices,
 )
 
@@ -168,6 +169,55 @@ def test_diffusion_loss_terms(setup):
     assert float(aug["bc"]) != pytest.approx(float(terms["bc"]), rel=1e-4)
     with pytest.raises(ValueError, match="needs a symmetry"):
         diffusion_loss(_small_apply, params, batch, jax.random.key(3), sched, None, sym_weight=0.5)
+
+
+def test_sym_loss_l2_norm_is_the_per_sample_norm(setup):
+    """norm="l2" is the paper's unsquared ||.||_2 per sample (scaled by 1/sqrt(D)), averaged."""
+    sym = setup["sym"]
+    x, k, obs = _inputs(b=5)
+    params = _small_params()
+    s_a = sym["action"]
+    e = np.asarray(_small_apply(params, s_a(x), k, {f: sym[f](v) for f, v in obs.items()})
+                   - s_a(_small_apply(params, x, k, obs))).reshape(5, -1)
+    want = np.mean(np.linalg.norm(e, axis=1) / np.sqrt(e.shape[1]))
+    got = float(sym_loss(_small_apply, params, x, k, obs, sym, norm="l2"))
+    assert got == pytest.approx(want, rel=1e-5)
+    assert float(sym_loss(_small_apply, params, x, k, obs, sym)) == pytest.approx(np.mean(e**2), rel=1e-5)
+    # Scaling the model by c scales d(residual)/d(params) by c; on top of that the MSE's
+    # gradient shrinks with the residual (c^2 overall), the unsquared norm's does not (c).
+    g = PolicyApplyFn(POLICY)
+    _, p = init_params(POLICY, jax.random.key(1))
+
+    def scaled(c):
+        return lambda p_, x_, k_, o_: c * g(p_, x_, k_, o_)
+
+    def gnorm(c, norm):
+        grads = jax.grad(lambda q: sym_loss(scaled(c), q, x, k, obs, sym, norm=norm))(p)
+        return float(optax_norm(grads))
+
+    assert gnorm(1e-3, "l2") == pytest.approx(1e-3 * gnorm(1.0, "l2"), rel=1e-3)
+    assert gnorm(1e-3, "mse") == pytest.approx(1e-6 * gnorm(1.0, "mse"), rel=1e-3)
+    with pytest.raises(ValueError, match="sym norm"):
+        sym_loss(_small_apply, params, x, k, obs, sym, norm="l1")
+
+
+def optax_norm(tree):
+    return jnp.sqrt(sum(jnp.sum(jnp.square(leaf)) for leaf in jax.tree.leaves(tree)))
+
+
+def test_sym_weight_warmup(setup):
+    assert float(sym_ramp(jnp.int32(0), 0)) == 1.0
+    assert [float(sym_ramp(jnp.int32(s), 4)) for s in (0, 1, 3, 10)] == [0.25, 0.5, 1.0, 1.0]
+    # In the train loop the lambda in effect is logged per step and ramps as scheduled.
+    cfg = dataclasses.replace(TRAIN, sym_warmup_steps=50, steps_per_dispatch=25)
+    loop = make_train_loop(POLICY, cfg, setup["dataset"], setup["sym"])
+    state, _ = create_train_state(POLICY, cfg)
+    _, m = loop(state, base_key(cfg))
+    np.testing.assert_allclose(np.asarray(m["sym_weight"]), 0.1 * np.arange(1, 26) / 50, rtol=1e-6)
+    with pytest.raises(ValueError, match="sym_warmup_steps"):
+        TrainConfig(warmup_steps=10, sym_warmup_steps=500, total_steps=400)
+    with pytest.raises(ValueError, match="sym_norm"):
+        TrainConfig(sym_norm="huber")
 
 
 # ---------------------------------------------------------------- data windows

@@ -29,6 +29,7 @@ from equibim_jax.training.train_step import (
     make_train_loop,
     make_train_step,
     sample_batch,
+    sym_ramp,
     window_indices,
 )
 
@@ -57,5 +58,6 @@ __all__ = [
     "sample_batch",
     "save_checkpoint",
     "sym_loss",
+    "sym_ramp",
     "window_indices",
 ]

@@ -73,11 +73,29 @@ def bc_loss(eps_pred: Array, noise: Array) -> Array:
     return jnp.mean(jnp.square(eps_pred - noise))
 
 
-def _sym_term(eps_orig: Array, eps_mirr: Array, action_op, stop_gradient: bool) -> Array:
+SYM_NORMS = ("mse", "l2")
+
+
+def _sym_term(eps_orig: Array, eps_mirr: Array, action_op, stop_gradient: bool,
+              norm: str = "mse") -> Array:
+    """The equivariance residual ``e = eps_mirr - S_a eps_orig`` reduced to a scalar.
+
+    ``norm="mse"``: ``mean(e ** 2)`` over all elements. ``norm="l2"``: the paper's
+    unsquared form, the mean over samples of ``||e_i||_2 / sqrt(D)`` (``D = Tp * A``
+    elements per sample, so both forms are on the scale of one element). Its gradient does
+    not shrink with the residual, so it keeps pulling where MSE has gone flat.
+    """
+    if norm not in SYM_NORMS:
+        raise ValueError(f"sym norm must be one of {SYM_NORMS}, got {norm!r}")
     target = action_op(eps_orig)
     if stop_gradient:
         target = jax.lax.stop_gradient(target)
-    return jnp.mean(jnp.square(eps_mirr - target))
+    e = eps_mirr - target
+    if norm == "mse":
+        return jnp.mean(jnp.square(e))
+    e = e.reshape(e.shape[0], -1)
+    # sqrt(x + tiny): finite gradient at an exactly equivariant prediction (e == 0).
+    return jnp.mean(jnp.sqrt(jnp.mean(jnp.square(e), axis=-1) + 1e-12))
 
 
 def sym_loss(
@@ -90,6 +108,7 @@ def sym_loss(
     *,
     action_key: str = "action",
     stop_gradient: bool = False,
+    norm: str = "mse",
 ) -> Array:
     """``L_sym = mean || eps(S_a a_k, k, S O) - S_a eps(a_k, k, O) ||^2`` (standalone).
 
@@ -102,15 +121,17 @@ def sym_loss(
       symmetry: normalised-space ``S`` with an op for ``action_key`` and each obs field.
       action_key: name of the action op.
       stop_gradient: stop gradients through ``S_a eps(a_k, k, O)``.
+      norm: ``"mse"`` (squared, mean over elements) or ``"l2"`` (unsquared per-sample
+        norm, as the paper writes ``L_sym``); see :func:`_sym_term`.
     Returns:
-      scalar, mean over ``B * Tp * A`` elements.
+      scalar (for ``"mse"`` the mean over ``B * Tp * A`` elements).
     """
     s_a = field_op(symmetry, action_key)
     x = jnp.concatenate([noisy_actions, s_a(noisy_actions)], axis=0)
     o = concat_branches(obs, mirror_batch(symmetry, obs))
     eps = apply_fn(params, x, jnp.concatenate([k, k], axis=0), o)
     eps_orig, eps_mirr = jnp.split(eps, 2, axis=0)
-    return _sym_term(eps_orig, eps_mirr, s_a, stop_gradient)
+    return _sym_term(eps_orig, eps_mirr, s_a, stop_gradient, norm)
 
 
 def diffusion_loss(
@@ -125,8 +146,10 @@ def diffusion_loss(
     stop_gradient: bool = False,
     mirror_augment: bool = False,
     action_key: str = "action",
+    sym_norm: str = "mse",
+    sym_scale: Array | float = 1.0,
 ) -> tuple[Array, dict[str, Array]]:
-    """Total loss ``bc + sym_weight * sym`` on one batch, with named terms.
+    """Total loss ``bc + sym_scale * sym_weight * sym`` on one batch, with named terms.
 
     The mirrored branch runs (in the same concatenated batch) when ``sym_weight > 0`` or
     ``mirror_augment``; otherwise only the original batch goes through the network and
@@ -145,6 +168,8 @@ def diffusion_loss(
       mirror_augment: also add BC on the mirrored branch (mirror data augmentation);
         ``bc`` is then the mean over both branches.
       action_key: name of the action field.
+      sym_norm: ``"mse"`` or ``"l2"`` (see :func:`_sym_term`).
+      sym_scale: multiplier of ``sym_weight``; may be traced (a warm-up schedule).
     Returns:
       ``(total, {"bc", "sym", "total"})``, all scalars.
     """
@@ -169,6 +194,6 @@ def diffusion_loss(
     bc = bc_loss(eps_orig, noise)
     if mirror_augment:
         bc = 0.5 * (bc + bc_loss(eps_mirr, s_a(noise)))
-    sym = _sym_term(eps_orig, eps_mirr, s_a, stop_gradient)
-    total = bc + sym_weight * sym
+    sym = _sym_term(eps_orig, eps_mirr, s_a, stop_gradient, sym_norm)
+    total = bc + (sym_scale * sym_weight) * sym
     return total, {"bc": bc, "sym": sym, "total": total}

@@ -47,6 +47,7 @@ __all__ = [
     "make_optimizer",
     "create_train_state",
     "build_step_fn",
+    "sym_ramp",
     "make_train_step",
     "make_train_loop",
     "base_key",
@@ -67,6 +68,10 @@ class TrainConfig:
       grad_clip: global-norm clip, or ``None``.
       sym_weight: ``lambda`` of ``L_sym`` (0 = plain BC, no mirrored branch).
       sym_stop_gradient: stop gradients through the ``S_a eps(a_k, k, O)`` side of ``L_sym``.
+      sym_norm: ``"mse"`` (squared, the default) or ``"l2"`` (the paper's unsquared
+        per-sample norm) for ``L_sym``.
+      sym_warmup_steps: ``lambda`` ramps linearly from 0 to ``sym_weight`` over this many
+        steps (0: constant).
       mirror_augment: also train BC on the mirrored branch.
       steps_per_dispatch: ``K`` steps per ``lax.scan`` dispatch in :func:`make_train_loop`.
       seed: seed of parameter init and of the base training key.
@@ -84,6 +89,8 @@ class TrainConfig:
     grad_clip: float | None = None
     sym_weight: float = 0.0
     sym_stop_gradient: bool = False
+    sym_norm: str = "mse"
+    sym_warmup_steps: int = 0
     mirror_augment: bool = False
     steps_per_dispatch: int = 10
     seed: int = 0
@@ -107,6 +114,13 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.grad_clip must be > 0 or None, got {self.grad_clip}")
         if self.sym_weight < 0:
             raise ValueError(f"TrainConfig.sym_weight (lambda) must be >= 0, got {self.sym_weight}")
+        if self.sym_norm not in ("mse", "l2"):
+            raise ValueError(f"TrainConfig.sym_norm must be 'mse' or 'l2', got {self.sym_norm!r}")
+        if not 0 <= self.sym_warmup_steps <= self.total_steps:
+            raise ValueError(
+                f"TrainConfig: need 0 <= sym_warmup_steps <= total_steps, got "
+                f"sym_warmup_steps={self.sym_warmup_steps}, total_steps={self.total_steps}"
+            )
         if self.steps_per_dispatch < 1:
             raise ValueError(
                 f"TrainConfig.steps_per_dispatch must be >= 1, got {self.steps_per_dispatch}"
@@ -308,6 +322,14 @@ def base_key(train_config: TrainConfig) -> Array:
     return jax.random.fold_in(jax.random.key(train_config.seed), 1)
 
 
+def sym_ramp(step: Array, warmup_steps: int) -> Array:
+    """``min(1, (step + 1) / warmup_steps)``: the fraction of ``lambda`` at ``step``
+    (1 throughout for ``warmup_steps == 0``)."""
+    if warmup_steps <= 0:
+        return jnp.ones((), jnp.float32)
+    return jnp.minimum(1.0, (step.astype(jnp.float32) + 1.0) / warmup_steps)
+
+
 def build_step_fn(
     policy_config: PolicyConfig,
     train_config: TrainConfig,
@@ -323,7 +345,8 @@ def build_step_fn(
       symmetry: normalised-space ``S`` (``{field: op}``; see
         ``equibim_jax.data.normalized_symmetry``); required if the mirrored branch runs.
     Returns:
-      the step; ``metrics`` holds scalars ``bc, sym, total, grad_norm, ema_decay``.
+      the step; ``metrics`` holds scalars ``bc, sym, total, grad_norm, ema_decay,
+      sym_weight`` (the ``lambda`` in effect at that step).
     """
     if train_config.uses_mirror and symmetry is None:
         raise ValueError("sym_weight > 0 or mirror_augment needs a symmetry")
@@ -332,6 +355,7 @@ def build_step_fn(
     def step_fn(state: TrainState, key: Array, dataset: OnDeviceDataset):
         k_batch, k_loss = jax.random.split(jax.random.fold_in(key, state.step))
         batch = sample_batch(dataset, k_batch, train_config.batch_size)
+        sym_scale = sym_ramp(state.step, train_config.sym_warmup_steps)
 
         def loss_fn(params):
             return diffusion_loss(
@@ -345,6 +369,8 @@ def build_step_fn(
                 stop_gradient=train_config.sym_stop_gradient,
                 mirror_augment=train_config.mirror_augment,
                 action_key=policy_config.action_key,
+                sym_norm=train_config.sym_norm,
+                sym_scale=sym_scale,
             )
 
         (_, terms), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
@@ -357,7 +383,8 @@ def build_step_fn(
             ema_params=ema_update(state.ema_params, params, decay),
             opt_state=opt_state,
         )
-        metrics = dict(terms, grad_norm=optax.tree.norm(grads), ema_decay=decay)
+        metrics = dict(terms, grad_norm=optax.tree.norm(grads), ema_decay=decay,
+                       sym_weight=sym_scale * train_config.sym_weight)
         return new_state, metrics
 
     return step_fn
