@@ -33,7 +33,7 @@ from equibim_jax.policies.diffusion import (
     init_params,
     make_schedule,
 )
-from equibim_jax.training.losses import diffusion_loss
+from equibim_jax.training.losses import SYM_NORMS, diffusion_loss
 
 Array = Any
 
@@ -114,8 +114,8 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.grad_clip must be > 0 or None, got {self.grad_clip}")
         if self.sym_weight < 0:
             raise ValueError(f"TrainConfig.sym_weight (lambda) must be >= 0, got {self.sym_weight}")
-        if self.sym_norm not in ("mse", "l2"):
-            raise ValueError(f"TrainConfig.sym_norm must be 'mse' or 'l2', got {self.sym_norm!r}")
+        if self.sym_norm not in SYM_NORMS:
+            raise ValueError(f"TrainConfig.sym_norm must be one of {SYM_NORMS}, got {self.sym_norm!r}")
         if not 0 <= self.sym_warmup_steps <= self.total_steps:
             raise ValueError(
                 f"TrainConfig: need 0 <= sym_warmup_steps <= total_steps, got "
