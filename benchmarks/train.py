@@ -8,7 +8,17 @@ ratio to a dense fp32 2048x2048 matmul measured in the same run.
 
     python benchmarks/train.py --out bench_train.json
 
-The persistent compilation cache is turned off so compile times are real.
+The demo's model (U-Net 32/64/128, DP3 encoder 32/64/128 on 64 points), with the package's
+XLA:CPU train-step options on and off (``equibim_jax._xla_options``; each setting in its
+own process):
+
+    python benchmarks/train.py --out bench_train_demo.json --dims 32 64 128 \
+        --pc-hidden 32 64 128 --num-points 64 --k 50 \
+        --variants im2col:0 im2col:1 im2col:1:16 --compare-xla-tuning
+
+A variant is ``conv_impl:mirror[:sym_batch]``: ``sym_batch`` samples of the batch go
+through the mirrored branch (default all). The persistent compilation cache is turned off
+so compile times are real.
 """
 
 from __future__ import annotations
@@ -22,6 +32,9 @@ import dataclasses
 import json
 import platform
 import statistics
+import subprocess
+import sys
+import tempfile
 import time
 
 import flax
@@ -67,6 +80,7 @@ def synthetic_problem(args):
     half = a // 2
     encoder = EncoderConfig(
         pc_key="point_cloud" if args.num_points > 0 else None,
+        pc_hidden=tuple(args.pc_hidden),
     )
     policy = PolicyConfig(
         action_dim=a,
@@ -97,10 +111,13 @@ def synthetic_problem(args):
     return policy, dataset, sym
 
 
-def bench_variant(args, policy, dataset, sym, conv_impl: str, mirror: bool, peak: float) -> dict:
+def bench_variant(args, policy, dataset, sym, conv_impl: str, mirror: bool, peak: float,
+                  sym_batch: int | None = None) -> dict:
     policy = dataclasses.replace(policy, unet=dataclasses.replace(policy.unet, conv_impl=conv_impl))
+    extra = {"sym_batch_size": sym_batch} if mirror and sym_batch else {}
     train = TrainConfig(
         batch_size=args.batch,
+        **extra,
         sym_weight=0.1 if mirror else 0.0,
         steps_per_dispatch=args.k,
         warmup_steps=10,
@@ -109,7 +126,8 @@ def bench_variant(args, policy, dataset, sym, conv_impl: str, mirror: bool, peak
     state, _ = create_train_state(policy, train)
     n_params = sum(x.size for x in jax.tree.leaves(state.params))
     key = base_key(train)
-    out = {"conv_impl": conv_impl, "mirror_branch": mirror, "params": int(n_params)}
+    out = {"conv_impl": conv_impl, "mirror_branch": mirror,
+           "sym_batch": (sym_batch or args.batch) if mirror else 0, "params": int(n_params)}
 
     # Single step: AOT compile (timed), FLOPs from XLA's cost analysis.
     step = make_train_step(policy, train, dataset, sym)
@@ -159,6 +177,8 @@ def main():
     p.add_argument("--horizon", type=int, default=16)
     p.add_argument("--action-dim", type=int, default=14)
     p.add_argument("--num-points", type=int, default=0, help="0: state-only observations")
+    p.add_argument("--pc-hidden", type=int, nargs="+", default=[64, 128, 256],
+                   help="per-point MLP widths of the point-cloud encoder")
     p.add_argument("--frames", type=int, default=2000)
     p.add_argument("--k", type=int, default=5, help="train steps per lax.scan dispatch")
     p.add_argument("--repeats", type=int, default=3, help="timed dispatches per variant")
@@ -166,9 +186,14 @@ def main():
         "--variants",
         nargs="+",
         default=["im2col:0", "im2col:1", "xla:0", "xla:1"],
-        help="conv_impl:mirror pairs; xla = lax.conv_general_dilated, what flax.linen.Conv calls",
+        help="conv_impl:mirror[:sym_batch]; xla = lax.conv_general_dilated, what flax.linen.Conv calls",
     )
+    p.add_argument("--compare-xla-tuning", action="store_true",
+                   help="run everything twice, in two processes, with EQUIBIM_JAX_XLA_TUNING=1 "
+                        "and =0 (the train step's XLA:CPU options on and off), and report both")
     args = p.parse_args()
+    if args.compare_xla_tuning:
+        return compare_xla_tuning(args)
 
     device = jax.devices()[0]
     result = {
@@ -183,6 +208,8 @@ def main():
         },
         "device": {"platform": device.platform, "kind": device.device_kind, "count": jax.device_count()},
         "host": {"cpus": os.cpu_count(), "loadavg_start": os.getloadavg()},
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        "train_compiler_options": _train_compiler_options(),
         "config": vars(args),
         "notes": (
             "compile_s_* are AOT compile times with the persistent cache off. "
@@ -196,15 +223,57 @@ def main():
     peak = result["matmul_2048_fp32"]["gflops"]
     result["variants"] = []
     for v in args.variants:
-        impl, mirror = v.split(":")
-        r = bench_variant(args, policy, dataset, sym, impl, mirror == "1", peak)
+        impl, mirror, *rest = v.split(":")
+        r = bench_variant(args, policy, dataset, sym, impl, mirror == "1", peak,
+                          sym_batch=int(rest[0]) if rest else None)
         print(json.dumps(r), flush=True)
         result["variants"].append(r)
     result["matmul_2048_fp32_end"] = matmul_gflops()
     result["host"]["loadavg_end"] = os.getloadavg()
-    with open(args.out, "w") as f:
-        json.dump(result, f, indent=2)
+    _write_json(args.out, result)
     print(f"wrote {args.out}")
+
+
+def _train_compiler_options():
+    try:
+        from equibim_jax._xla_options import train_compiler_options
+    except ImportError:  # versions before the options existed (for before/after runs)
+        return None
+    return train_compiler_options()
+
+
+def compare_xla_tuning(args) -> None:
+    """Run this benchmark in two child processes (flag on, flag off) and merge the JSONs."""
+    argv = [a for a in sys.argv[1:] if a != "--compare-xla-tuning"]
+    i = argv.index("--out")
+    runs = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for label, value in (("xla_tuning_on", "1"), ("xla_tuning_off", "0")):
+            out = os.path.join(tmp, label + ".json")
+            child = argv[:i + 1] + [out] + argv[i + 2:]
+            env = dict(os.environ, EQUIBIM_JAX_XLA_TUNING=value)
+            print(f"== {label}", flush=True)
+            subprocess.run([sys.executable, os.path.abspath(__file__), *child], env=env, check=True)
+            with open(out) as f:
+                runs[label] = json.load(f)
+    on, off = runs["xla_tuning_on"], runs["xla_tuning_off"]
+    runs["speedup_of_tuning"] = [
+        {"conv_impl": a["conv_impl"], "mirror_branch": a["mirror_branch"], "sym_batch": a["sym_batch"],
+         "ms_per_step_on": a["ms_per_step_scan"], "ms_per_step_off": b["ms_per_step_scan"],
+         "speedup": b["ms_per_step_scan"] / a["ms_per_step_scan"]}
+        for a, b in zip(on["variants"], off["variants"])
+    ]
+    for r in runs["speedup_of_tuning"]:
+        print(json.dumps(r))
+    _write_json(args.out, runs)
+    print(f"wrote {args.out}")
+
+
+def _write_json(path: str, obj) -> None:
+    tmp = f"{path}.tmp{os.getpid()}"
+    with open(tmp, "w") as f:
+        json.dump(obj, f, indent=2)
+    os.replace(tmp, path)
 
 
 if __name__ == "__main__":

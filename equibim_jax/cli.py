@@ -128,6 +128,9 @@ class Train:
     """L_sym as the paper's unsquared per-sample norm (l2) or the squared error (mse)."""
     sym_warmup_steps: int = 0
     """Ramp lambda linearly from 0 over this many steps (0: constant)."""
+    sym_batch_size: int | None = None
+    """Samples per step that also go through the mirrored branch for L_sym (default: the
+    whole batch). A quarter of the batch costs about 1.25x a BC step instead of 2x."""
     mirror_augment: bool = False
     """Also fit the mirrored demos by BC (mirror data augmentation, a baseline to EquiBim)."""
     steps: int = 1000
@@ -148,6 +151,7 @@ class Train:
                          steps_per_dispatch=self.steps_per_dispatch, sym_weight=self.sym_weight,
                          sym_stop_gradient=self.sym_stop_gradient, sym_norm=self.sym_norm,
                          sym_warmup_steps=min(self.sym_warmup_steps, self.steps),
+                         sym_batch_size=self.sym_batch_size,
                          mirror_augment=self.mirror_augment, seed=self.seed)
         s = train_policy(self.data, self.out, self.model, tc, checkpoint_every=self.checkpoint_every)
         f = s["final"]

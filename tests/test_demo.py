@@ -147,13 +147,15 @@ def test_bad_settings_are_refused_with_a_clear_message():
 
 
 def test_demo_train_configs_differ_only_in_l_sym():
-    cfg = DemoConfig(sym_stop_gradient=True, sym_warmup_steps=100)
+    cfg = DemoConfig(sym_stop_gradient=True, sym_warmup_steps=100, sym_batch_size=16)
     base, eq = cfg.train_config(0.0), cfg.train_config(cfg.sym_weight)
     assert (base.sym_warmup_steps, eq.sym_warmup_steps) == (0, 100)
+    assert (base.sym_batch_size, eq.sym_batch_size) == (None, 16)
     assert (base.sym_weight, base.sym_stop_gradient, base.uses_mirror) == (0.0, False, False)
     assert (eq.sym_weight, eq.sym_stop_gradient, eq.uses_mirror) == (cfg.sym_weight, True, True)
     import dataclasses
-    assert dataclasses.replace(eq, sym_weight=0.0, sym_stop_gradient=False, sym_warmup_steps=0) == base
+    assert dataclasses.replace(eq, sym_weight=0.0, sym_stop_gradient=False, sym_warmup_steps=0,
+                               sym_batch_size=None) == base
 
 
 def test_mirrored_demo_replays_as_a_right_side_success(tiny_demo):

@@ -65,3 +65,27 @@ def test_wilson_bad_z():
         wilson_interval(1, 2, z=0.0)
     with pytest.raises(ValueError, match="z must be"):
         wilson_interval(1, 2, z=math.nan)
+
+
+def test_paired_sign_test_hand_values():
+    from equibim_jax.evaluation import paired_sign_test
+
+    # 10 discordant pairs, all for b: P(X >= 10) = 2^-10; two-sided doubles it.
+    r = paired_sign_test([False] * 32, [True] * 10 + [False] * 22)
+    assert (r["pairs"], r["discordant"], r["a_only"], r["b_only"]) == (32, 10, 0, 10)
+    assert r["p_b_better"] == pytest.approx(2**-10)
+    assert r["p_two_sided"] == pytest.approx(2**-9)
+    # 8 pairs for a, 2 for b, 20 concordant: P(X >= 2) = 1 - 11/1024; two-sided 2 * 56/1024.
+    a = [True] * 8 + [False] * 2 + [True] * 10 + [False] * 10
+    b = [False] * 8 + [True] * 2 + [True] * 10 + [False] * 10
+    r = paired_sign_test(a, b)
+    assert (r["discordant"], r["a_only"], r["b_only"]) == (10, 8, 2)
+    assert r["p_b_better"] == pytest.approx(1 - 11 / 1024)
+    assert r["p_two_sided"] == pytest.approx(112 / 1024)
+    # No discordant pair: no evidence either way.
+    r = paired_sign_test([True, False], [True, False])
+    assert r["p_b_better"] == 1.0 and r["p_two_sided"] == 1.0
+    with pytest.raises(ValueError, match="equal-length"):
+        paired_sign_test([True], [True, False])
+    with pytest.raises(ValueError, match="equal-length"):
+        paired_sign_test([], [])

@@ -172,6 +172,41 @@ def test_diffusion_loss_terms(setup):
         diffusion_loss(_small_apply, params, batch, jax.random.key(3), sched, None, sym_weight=0.5)
 
 
+def test_sym_loss_on_a_sub_batch(setup):
+    """sym_batch=n: BC still over all B samples, L_sym the mean over the first n of them."""
+    from equibim_jax.policies import add_noise, make_schedule
+    from equibim_jax.training import sample_batch
+
+    sym, ds = setup["sym"], setup["dataset"]
+    params = _small_params()
+    batch = sample_batch(ds, jax.random.key(2), 8)
+    sched = make_schedule(100)
+    key = jax.random.key(3)
+    _, full = diffusion_loss(_small_apply, params, batch, key, sched, sym, sym_weight=0.5, sym_norm="l2")
+    total, sub = diffusion_loss(_small_apply, params, batch, key, sched, sym, sym_weight=0.5,
+                                sym_norm="l2", sym_batch=3)
+    assert float(sub["bc"]) == pytest.approx(float(full["bc"]), rel=1e-5)
+    assert float(total) == pytest.approx(float(sub["bc"] + 0.5 * sub["sym"]), rel=1e-6)
+    # The same noise and diffusion steps as inside diffusion_loss, then L_sym on 3 samples.
+    k_noise, k_step = jax.random.split(key)
+    a0 = batch["action"]
+    noise = jax.random.normal(k_noise, a0.shape, a0.dtype)
+    k = jax.random.randint(k_step, (8,), 0, 100)
+    a_k = add_noise(sched, a0, noise, k)
+    obs3 = {f: v[:3] for f, v in batch.items() if f != "action"}
+    want = sym_loss(_small_apply, params, a_k[:3], k[:3], obs3, sym, norm="l2")
+    assert float(sub["sym"]) == pytest.approx(float(want), rel=1e-5)
+    assert float(sub["sym"]) != pytest.approx(float(full["sym"]), rel=1e-3)
+    _, all8 = diffusion_loss(_small_apply, params, batch, key, sched, sym, sym_weight=0.5,
+                             sym_norm="l2", sym_batch=8)
+    assert float(all8["sym"]) == pytest.approx(float(full["sym"]), rel=1e-6)
+    for bad in (0, 9):
+        with pytest.raises(ValueError, match="sym_batch"):
+            diffusion_loss(_small_apply, params, batch, key, sched, sym, sym_weight=0.5, sym_batch=bad)
+    with pytest.raises(ValueError, match="sym_batch_size"):
+        TrainConfig(batch_size=16, sym_batch_size=17)
+
+
 def test_sym_loss_l2_norm_is_the_per_sample_norm(setup):
     """norm="l2" is the paper's unsquared ||.||_2 per sample (scaled by 1/sqrt(D)), averaged."""
     sym = setup["sym"]
@@ -354,3 +389,19 @@ def test_train_config_errors():
         TrainConfig(batch_size=0)
     with pytest.raises(ValueError, match="needs a symmetry"):
         make_train_loop(POLICY, TrainConfig(sym_weight=1.0), None, None)
+
+
+def test_train_compiler_options(monkeypatch, setup):
+    """The train step's XLA:CPU options are on by default, off with EQUIBIM_JAX_XLA_TUNING=0,
+    and change speed, not results."""
+    from equibim_jax._xla_options import TRAIN_CPU_OPTIONS, train_compiler_options
+
+    assert train_compiler_options() == (TRAIN_CPU_OPTIONS if jax.default_backend() == "cpu" else None)
+    cfg = dataclasses.replace(TRAIN, steps_per_dispatch=5)
+    state, _ = create_train_state(POLICY, cfg)
+    _, tuned = make_train_loop(POLICY, cfg, setup["dataset"], setup["sym"])(state, base_key(cfg))
+    monkeypatch.setenv("EQUIBIM_JAX_XLA_TUNING", "0")
+    assert train_compiler_options() is None
+    _, plain = make_train_loop(POLICY, cfg, setup["dataset"], setup["sym"])(state, base_key(cfg))
+    for name in ("bc", "sym", "total"):
+        np.testing.assert_allclose(np.asarray(tuned[name]), np.asarray(plain[name]), rtol=1e-4, atol=1e-6)

@@ -1,5 +1,5 @@
 """Closed-loop evaluation: rollouts, success statistics, tables."""
 
-from equibim_jax.evaluation.stats import wilson_interval
+from equibim_jax.evaluation.stats import paired_sign_test, wilson_interval
 
-__all__ = ["wilson_interval"]
+__all__ = ["wilson_interval", "paired_sign_test"]

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["wilson_interval"]
+__all__ = ["wilson_interval", "paired_sign_test"]
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -47,3 +47,35 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
     half = (z / denom) * math.sqrt(p * (1.0 - p) / n + z2 / (4 * n * n))
     # Rounding can push the ends a hair past [0, 1] at p = 0 or p = 1.
     return max(0.0, center - half), min(1.0, center + half)
+
+
+def paired_sign_test(a, b) -> dict:
+    """Exact sign test on paired episodes (McNemar's exact test): does ``b`` beat ``a``?
+
+    Episode ``i`` of ``a`` and of ``b`` share their initial state. Only the discordant pairs
+    (one succeeds, the other fails) carry information; under the null hypothesis each goes
+    either way with probability 1/2.
+
+    Args:
+      a, b: equal-length sequences of booleans (per-episode success).
+    Returns:
+      ``{"pairs", "discordant", "a_only", "b_only", "p_b_better", "p_two_sided"}``:
+      ``p_b_better = P(X >= b_only)`` for ``X ~ Binomial(discordant, 1/2)``;
+      ``p_two_sided = min(1, 2 * P(X >= max(a_only, b_only)))``. Both are 1 when no pair
+      is discordant. For example 10 pairs all for ``b``: ``p_b_better = 2**-10 = 0.00098``.
+    Raises:
+      ValueError: if the lengths differ or the sequences are empty.
+    """
+    a, b = [bool(x) for x in a], [bool(x) for x in b]
+    if len(a) != len(b) or not a:
+        raise ValueError(f"paired_sign_test: need two equal-length non-empty sequences, got {len(a)} and {len(b)}")
+    a_only = sum(x and not y for x, y in zip(a, b))
+    b_only = sum(y and not x for x, y in zip(a, b))
+    n = a_only + b_only
+
+    def tail(k: int) -> float:  # P(X >= k), X ~ Binomial(n, 1/2)
+        return sum(math.comb(n, i) for i in range(k, n + 1)) / 2**n
+
+    return {"pairs": len(a), "discordant": n, "a_only": a_only, "b_only": b_only,
+            "p_b_better": tail(b_only) if n else 1.0,
+            "p_two_sided": min(1.0, 2 * tail(max(a_only, b_only))) if n else 1.0}

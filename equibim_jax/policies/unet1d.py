@@ -127,7 +127,10 @@ class Conv1d(nn.Module):
         # flattening (i * C_in + c) matches kernel.reshape(k * C_in, C_out).
         views = [xp[:, i : i + self.stride * (t_out - 1) + 1 : self.stride] for i in range(k)]
         cols = jnp.stack(views, axis=2).reshape(x.shape[0], t_out, k * c_in)
-        return cols @ kernel.reshape(k * c_in, self.features) + bias
+        # One 2-D matmul: XLA:CPU runs the weight gradient of a dot with several
+        # contracting dims (here B and T) about 10x slower than the 2-D form.
+        y = cols.reshape(-1, k * c_in) @ kernel.reshape(k * c_in, self.features)
+        return y.reshape(x.shape[0], t_out, self.features) + bias
 
 
 class Conv1dBlock(nn.Module):

@@ -148,6 +148,7 @@ def diffusion_loss(
     action_key: str = "action",
     sym_norm: str = "mse",
     sym_scale: Array | float = 1.0,
+    sym_batch: int | None = None,
 ) -> tuple[Array, dict[str, Array]]:
     """Total loss ``bc + sym_scale * sym_weight * sym`` on one batch, with named terms.
 
@@ -170,6 +171,11 @@ def diffusion_loss(
       action_key: name of the action field.
       sym_norm: ``"mse"`` or ``"l2"`` (see :func:`_sym_term`).
       sym_scale: multiplier of ``sym_weight``; may be traced (a warm-up schedule).
+      sym_batch: how many samples of the batch (the first ``sym_batch``; batches are drawn
+        at random) also go through the mirrored branch; ``None``: all ``B``. ``L_sym`` (and
+        the mirrored BC term of ``mirror_augment``) is then the mean over those samples, an
+        unbiased estimate of the same expectation for ``1 + sym_batch / B`` of the
+        network cost instead of 2x. BC always uses all ``B`` samples.
     Returns:
       ``(total, {"bc", "sym", "total"})``, all scalars.
     """
@@ -185,15 +191,19 @@ def diffusion_loss(
         return bc, {"bc": bc, "sym": jnp.zeros_like(bc), "total": bc}
     if symmetry is None:
         raise ValueError("diffusion_loss: sym_weight > 0 or mirror_augment needs a symmetry")
+    n = b if sym_batch is None else int(sym_batch)
+    if not 1 <= n <= b:
+        raise ValueError(f"diffusion_loss: sym_batch must be in [1, B={b}], got {sym_batch}")
     s_a = field_op(symmetry, action_key)
     # Same k, same noise mirrored: S_a a_k == add_noise(S_a a0, S_a noise, k) as S_a is linear.
-    x = jnp.concatenate([a_k, s_a(a_k)], axis=0)
-    o = concat_branches(obs, mirror_batch(symmetry, obs))
-    eps = apply_fn(params, x, jnp.concatenate([k, k], axis=0), o)
-    eps_orig, eps_mirr = jnp.split(eps, 2, axis=0)
+    # One network pass over [B + n]: the B originals, then the first n mirrored.
+    x = jnp.concatenate([a_k, s_a(a_k[:n])], axis=0)
+    o = concat_branches(obs, mirror_batch(symmetry, {f: v[:n] for f, v in obs.items()}))
+    eps = apply_fn(params, x, jnp.concatenate([k, k[:n]], axis=0), o)
+    eps_orig, eps_mirr = eps[:b], eps[b:]
     bc = bc_loss(eps_orig, noise)
     if mirror_augment:
-        bc = 0.5 * (bc + bc_loss(eps_mirr, s_a(noise)))
-    sym = _sym_term(eps_orig, eps_mirr, s_a, stop_gradient, sym_norm)
+        bc = 0.5 * (bc + bc_loss(eps_mirr, s_a(noise[:n])))
+    sym = _sym_term(eps_orig[:n], eps_mirr, s_a, stop_gradient, sym_norm)
     total = bc + (sym_scale * sym_weight) * sym
     return total, {"bc": bc, "sym": sym, "total": total}

@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from equibim_jax._xla_options import train_compiler_options
 from equibim_jax.policies.diffusion import (
     DiffusionSchedule,
     EmaConfig,
@@ -72,6 +73,9 @@ class TrainConfig:
         per-sample norm) for ``L_sym``.
       sym_warmup_steps: ``lambda`` ramps linearly from 0 to ``sym_weight`` over this many
         steps (0: constant).
+      sym_batch_size: samples per step that also go through the mirrored branch (``L_sym``
+        is their mean); ``None``: all ``batch_size``. A quarter of the batch costs about
+        1.25x a plain BC step instead of 2x.
       mirror_augment: also train BC on the mirrored branch.
       steps_per_dispatch: ``K`` steps per ``lax.scan`` dispatch in :func:`make_train_loop`.
       seed: seed of parameter init and of the base training key.
@@ -91,6 +95,7 @@ class TrainConfig:
     sym_stop_gradient: bool = False
     sym_norm: str = "mse"
     sym_warmup_steps: int = 0
+    sym_batch_size: int | None = None
     mirror_augment: bool = False
     steps_per_dispatch: int = 10
     seed: int = 0
@@ -120,6 +125,11 @@ class TrainConfig:
             raise ValueError(
                 f"TrainConfig: need 0 <= sym_warmup_steps <= total_steps, got "
                 f"sym_warmup_steps={self.sym_warmup_steps}, total_steps={self.total_steps}"
+            )
+        if self.sym_batch_size is not None and not 1 <= self.sym_batch_size <= self.batch_size:
+            raise ValueError(
+                f"TrainConfig.sym_batch_size must be None or in [1, batch_size={self.batch_size}], "
+                f"got {self.sym_batch_size}"
             )
         if self.steps_per_dispatch < 1:
             raise ValueError(
@@ -371,6 +381,7 @@ def build_step_fn(
                 action_key=policy_config.action_key,
                 sym_norm=train_config.sym_norm,
                 sym_scale=sym_scale,
+                sym_batch=train_config.sym_batch_size,
             )
 
         (_, terms), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
@@ -428,7 +439,8 @@ def make_train_step(
     Returns:
       the step; ``metrics`` are scalars ``{bc, sym, total, grad_norm, ema_decay}``.
     """
-    return BoundTrainFn(jax.jit(build_step_fn(policy_config, train_config, symmetry, schedule)), dataset)
+    step = build_step_fn(policy_config, train_config, symmetry, schedule)
+    return BoundTrainFn(jax.jit(step, compiler_options=train_compiler_options()), dataset)
 
 
 def make_train_loop(
@@ -449,7 +461,7 @@ def make_train_loop(
     k_steps = train_config.steps_per_dispatch if num_steps is None else num_steps
     step_fn = build_step_fn(policy_config, train_config, symmetry, schedule)
 
-    @jax.jit
+    @functools.partial(jax.jit, compiler_options=train_compiler_options())
     def loop(state, key, data):
         def body(s, _):
             return step_fn(s, key, data)
