@@ -44,7 +44,7 @@ class DemoConfig:
     """Successful expert demos (all on ``env.side``)."""
     model: ModelOptions = ModelOptions()
     batch_size: int = 64
-    train_steps: int = 8000
+    train_steps: int = 6000
     steps_per_dispatch: int = 50
     learning_rate: float = 3e-3
     warmup_steps: int = 50
@@ -62,7 +62,7 @@ class DemoConfig:
     sym_batch_size: int | None = 32
     """Samples of each batch of 64 that also go through the mirrored branch for L_sym (None:
     all). Half the batch makes a +EquiBim step 29 ms instead of 38 ms (baseline: 21 ms), so
-    8000 steps of both runs fit the 10-minute budget (README)."""
+    6000 steps of both runs fit the 10-minute budget (README)."""
     eval_episodes: int = 32
     """Closed-loop episodes per side and policy."""
     seed: int = 0
