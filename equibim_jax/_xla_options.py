@@ -3,9 +3,9 @@
 On XLA:CPU, fusions handed to YNNPACK cover dots, element-wise ops and reductions. For the
 diffusion-policy train step, keeping only the dots in YNNPACK fusions
 (``xla_cpu_experimental_ynn_fusion_type=LIBRARY_FUSION_TYPE_DOT``) was measured faster:
-on 2 cores, the DP3 encoder's gradient alone took 4.3 ms against 18 ms, the whole demo
-train step about 6% (baseline) to 9% (+EquiBim) less (``benchmarks/train.py
---compare-xla-tuning``). For MJX physics the same setting is slower (demo generation 63 s
+on 2 cores, the DP3 encoder's gradient alone took 4.3 ms against 18 ms, and the demo's
+train step 21.2 ms against 26.1 ms (baseline) and 38.1 ms against 40.8 ms (+EquiBim)
+(``benchmarks/train.py --compare-xla-tuning``, numbers in the README). For MJX physics the same setting is slower (demo generation 63 s
 against 51 s when set process-wide), so it is passed per ``jit``, only to the train step
 and loop, not through ``XLA_FLAGS``.
 

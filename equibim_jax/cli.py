@@ -130,7 +130,7 @@ class Train:
     """Ramp lambda linearly from 0 over this many steps (0: constant)."""
     sym_batch_size: int | None = None
     """Samples per step that also go through the mirrored branch for L_sym (default: the
-    whole batch). A quarter of the batch costs about 1.25x a BC step instead of 2x."""
+    whole batch). 32 of 64 takes 29 ms a step against 38 ms for all 64 (BC alone: 21 ms)."""
     mirror_augment: bool = False
     """Also fit the mirrored demos by BC (mirror data augmentation, a baseline to EquiBim)."""
     steps: int = 1000

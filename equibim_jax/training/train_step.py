@@ -74,8 +74,8 @@ class TrainConfig:
       sym_warmup_steps: ``lambda`` ramps linearly from 0 to ``sym_weight`` over this many
         steps (0: constant).
       sym_batch_size: samples per step that also go through the mirrored branch (``L_sym``
-        is their mean); ``None``: all ``batch_size``. A quarter of the batch costs about
-        1.25x a plain BC step instead of 2x.
+        is their mean); ``None``: all ``batch_size``. On the demo's network, 32 of 64 samples
+        take 29 ms a step against 38 ms for all 64 and 21 ms for BC alone.
       mirror_augment: also train BC on the mirrored branch.
       steps_per_dispatch: ``K`` steps per ``lax.scan`` dispatch in :func:`make_train_loop`.
       seed: seed of parameter init and of the base training key.
