@@ -2,12 +2,13 @@
 
 On XLA:CPU, fusions handed to YNNPACK cover dots, element-wise ops and reductions. For the
 diffusion-policy train step, keeping only the dots in YNNPACK fusions
-(``xla_cpu_experimental_ynn_fusion_type=LIBRARY_FUSION_TYPE_DOT``) was measured faster:
-on 2 cores, the DP3 encoder's gradient alone took 4.3 ms against 18 ms, and the demo's
-train step 21.2 ms against 26.1 ms (baseline) and 38.1 ms against 40.8 ms (+EquiBim)
-(``benchmarks/train.py --compare-xla-tuning``, numbers in the README). For MJX physics the same setting is slower (demo generation 63 s
-against 51 s when set process-wide), so it is passed per ``jit``, only to the train step
-and loop, not through ``XLA_FLAGS``.
+(``xla_cpu_experimental_ynn_fusion_type=LIBRARY_FUSION_TYPE_DOT``) was measured faster on
+2 cores: the DP3 encoder's gradient alone took 4.5 ms against 17.8 ms
+(``benchmarks/layers.py``), the demo's train step 21.2 ms against 26.1 ms (baseline) and
+38.1 ms against 40.8 ms (+EquiBim) (``benchmarks/train.py --compare-xla-tuning``; numbers
+in the README). For MJX physics the same setting is slower (demo generation took 63 s
+against 51 s with it set process-wide through ``XLA_FLAGS``), so it is passed per ``jit``,
+to the train step and loop only.
 
 ``EQUIBIM_JAX_XLA_TUNING=0`` turns it off. Other backends get no options.
 """
