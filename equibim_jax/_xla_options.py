@@ -6,9 +6,9 @@ diffusion-policy train step, keeping only the dots in YNNPACK fusions
 2 cores: the DP3 encoder's gradient alone took 4.5 ms against 17.8 ms
 (``benchmarks/layers.py``), the demo's train step 21.2 ms against 26.1 ms (baseline) and
 38.1 ms against 40.8 ms (+EquiBim) (``benchmarks/train.py --compare-xla-tuning``; numbers
-in the README). For MJX physics the same setting is slower (demo generation took 63 s
-against 51 s with it set process-wide through ``XLA_FLAGS``), so it is passed per ``jit``,
-to the train step and loop only.
+in the README). MJX physics got slower when reductions left YNNPACK process-wide (demo
+generation took 63 s with ``XLA_FLAGS=--xla_cpu_experimental_ynn_fusion_type=-reduce``
+against 51 s without), so the option is passed per ``jit``, to the train step and loop only.
 
 ``EQUIBIM_JAX_XLA_TUNING=0`` turns it off. Other backends get no options.
 """
