@@ -43,6 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from equibim_jax._xla_options import train_compiler_options
 from equibim_jax.data.normalizer import signed_permutation
 from equibim_jax.policies import EncoderConfig, PolicyConfig, UNetConfig
 from equibim_jax.training import (
@@ -114,10 +115,9 @@ def synthetic_problem(args):
 def bench_variant(args, policy, dataset, sym, conv_impl: str, mirror: bool, peak: float,
                   sym_batch: int | None = None) -> dict:
     policy = dataclasses.replace(policy, unet=dataclasses.replace(policy.unet, conv_impl=conv_impl))
-    extra = {"sym_batch_size": sym_batch} if mirror and sym_batch else {}
     train = TrainConfig(
         batch_size=args.batch,
-        **extra,
+        sym_batch_size=sym_batch if mirror else None,
         sym_weight=0.1 if mirror else 0.0,
         steps_per_dispatch=args.k,
         warmup_steps=10,
@@ -209,7 +209,7 @@ def main():
         "device": {"platform": device.platform, "kind": device.device_kind, "count": jax.device_count()},
         "host": {"cpus": os.cpu_count(), "loadavg_start": os.getloadavg()},
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
-        "train_compiler_options": _train_compiler_options(),
+        "train_compiler_options": train_compiler_options(),
         "config": vars(args),
         "notes": (
             "compile_s_* are AOT compile times with the persistent cache off. "
@@ -232,14 +232,6 @@ def main():
     result["host"]["loadavg_end"] = os.getloadavg()
     _write_json(args.out, result)
     print(f"wrote {args.out}")
-
-
-def _train_compiler_options():
-    try:
-        from equibim_jax._xla_options import train_compiler_options
-    except ImportError:  # versions before the options existed (for before/after runs)
-        return None
-    return train_compiler_options()
 
 
 def compare_xla_tuning(args) -> None:

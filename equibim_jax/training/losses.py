@@ -98,6 +98,18 @@ def _sym_term(eps_orig: Array, eps_mirr: Array, action_op, stop_gradient: bool,
     return jnp.mean(jnp.sqrt(jnp.mean(jnp.square(e), axis=-1) + 1e-12))
 
 
+def _both_branches(apply_fn: ApplyFn, params: Any, a_k: Array, k: Array,
+                   obs: Mapping[str, Array], symmetry: Any, s_a, n: int | None = None):
+    """One network pass over ``[B + n]``: the ``B`` originals, then the first ``n`` mirrored
+    (``n = B`` by default). Returns ``(eps_orig [B, ...], eps_mirr [n, ...])``."""
+    b = a_k.shape[0]
+    n = b if n is None else n
+    x = jnp.concatenate([a_k, s_a(a_k[:n])], axis=0)
+    o = concat_branches(obs, mirror_batch(symmetry, {f: v[:n] for f, v in obs.items()}))
+    eps = apply_fn(params, x, jnp.concatenate([k, k[:n]], axis=0), o)
+    return eps[:b], eps[b:]
+
+
 def sym_loss(
     apply_fn: ApplyFn,
     params: Any,
@@ -127,10 +139,7 @@ def sym_loss(
       scalar (for ``"mse"`` the mean over ``B * Tp * A`` elements).
     """
     s_a = field_op(symmetry, action_key)
-    x = jnp.concatenate([noisy_actions, s_a(noisy_actions)], axis=0)
-    o = concat_branches(obs, mirror_batch(symmetry, obs))
-    eps = apply_fn(params, x, jnp.concatenate([k, k], axis=0), o)
-    eps_orig, eps_mirr = jnp.split(eps, 2, axis=0)
+    eps_orig, eps_mirr = _both_branches(apply_fn, params, noisy_actions, k, obs, symmetry, s_a)
     return _sym_term(eps_orig, eps_mirr, s_a, stop_gradient, norm)
 
 
@@ -196,11 +205,7 @@ def diffusion_loss(
         raise ValueError(f"diffusion_loss: sym_batch must be in [1, B={b}], got {sym_batch}")
     s_a = field_op(symmetry, action_key)
     # Same k, same noise mirrored: S_a a_k == add_noise(S_a a0, S_a noise, k) as S_a is linear.
-    # One network pass over [B + n]: the B originals, then the first n mirrored.
-    x = jnp.concatenate([a_k, s_a(a_k[:n])], axis=0)
-    o = concat_branches(obs, mirror_batch(symmetry, {f: v[:n] for f, v in obs.items()}))
-    eps = apply_fn(params, x, jnp.concatenate([k, k[:n]], axis=0), o)
-    eps_orig, eps_mirr = eps[:b], eps[b:]
+    eps_orig, eps_mirr = _both_branches(apply_fn, params, a_k, k, obs, symmetry, s_a, n)
     bc = bc_loss(eps_orig, noise)
     if mirror_augment:
         bc = 0.5 * (bc + bc_loss(eps_mirr, s_a(noise[:n])))
