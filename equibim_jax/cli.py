@@ -83,6 +83,10 @@ class Demo:
         print(format_table(res))
         eq = [f"{n}: {res[n]['train']['final']['equiv_err']:.3f}" for n in ("baseline", "equibim")]
         print(f"\nrelative equivariance error of the noise prediction at the end: {', '.join(eq)}")
+        sq = [f"{n}: {res[n]['open_loop_error']['equivariance']['arm_rad']:.4f} rad "
+              f"(gripper {res[n]['open_loop_error']['equivariance']['gripper']:.3f})" for n in ("baseline", "equibim")]
+        print(f"equivariance error of the sampled actions, |S pi(S O, S z) - pi(O, z)| on the demo "
+              f"windows: {', '.join(sq)}")
         print(f"wall time {res['wall_time_s']:.0f} s (generate {t['generate_s']:.0f} s, train "
               f"{t['train_baseline_s']:.0f} + {t['train_equibim_s']:.0f} s, eval {t['eval_s']:.0f} s; "
               f"compile included)")
@@ -126,7 +130,11 @@ class Train:
     """Treat S(pi(O)) in L_sym as a fixed target: only the mirrored prediction is pulled."""
     sym_norm: str = "l2"
     """L_sym as the paper's unsquared per-sample norm (l2) or the squared error (mse)."""
+    sym_space: str = "eps"
+    """Compare the noise predictions (eps) or the clean actions they imply (x0) in L_sym."""
     sym_warmup_steps: int = 0
+    sym_start_step: int = 0
+    """L_sym's weight is 0 before this step (BC first), then as --sym-warmup-steps says."""
     """Ramp lambda linearly from 0 over this many steps (0: constant)."""
     sym_batch_size: int | None = None
     """Samples per step that also go through the mirrored branch for L_sym (default: the
@@ -149,8 +157,9 @@ class Train:
         tc = TrainConfig(batch_size=self.batch_size, learning_rate=self.learning_rate,
                          total_steps=self.steps, warmup_steps=min(self.warmup_steps, self.steps),
                          steps_per_dispatch=self.steps_per_dispatch, sym_weight=self.sym_weight,
-                         sym_stop_gradient=self.sym_stop_gradient, sym_norm=self.sym_norm,
+                         sym_stop_gradient=self.sym_stop_gradient, sym_norm=self.sym_norm, sym_space=self.sym_space,
                          sym_warmup_steps=min(self.sym_warmup_steps, self.steps),
+                         sym_start_step=self.sym_start_step,
                          sym_batch_size=self.sym_batch_size,
                          mirror_augment=self.mirror_augment, seed=self.seed)
         s = train_policy(self.data, self.out, self.model, tc, checkpoint_every=self.checkpoint_every)
@@ -169,18 +178,73 @@ class Eval:
     episodes: int = 64
     """Episodes per side."""
     seed: int = 1
+    mirror_noise: bool = False
+    """Pair the sides in all their randomness: the mirrored episode also samples with the
+    mirrored DDIM noise. Then also reports how far each mirrored trajectory, mapped back
+    by S, drifts from its trained-side twin (0 for an exactly equivariant policy)."""
     out: str | None = None
     """Also write the results as JSON here."""
 
     def run(self, argv=None) -> None:
         from equibim_jax._io import atomic_write_json
-        from equibim_jax.experiments.pipeline import evaluate_checkpoint
+        from equibim_jax.experiments.pipeline import evaluate_checkpoint, load_policy
 
-        res = evaluate_checkpoint(self.run_dir, self.episodes, seed=self.seed)
-        for side, r in res.items():
+        if self.mirror_noise:
+            import jax
+
+            from equibim_jax.evaluation.rollout import mirror_pair_gap
+
+            model, state, normalizer, config = load_policy(self.run_dir)
+            res = mirror_pair_gap(config["env_spec"].make(), model, normalizer, state.ema_params,
+                                  jax.random.key(self.seed), self.episodes, progress=True)
+        else:
+            res = evaluate_checkpoint(self.run_dir, self.episodes, seed=self.seed)
+        for side in ("trained", "mirrored"):
+            r = res[side]
             lo, hi = r["ci95"]
             print(f"{side:<9} success {r['success']:.3f}  95% CI [{lo:.3f}, {hi:.3f}]  "
                   f"({r['successes']}/{r['episodes']})")
+        if self.mirror_noise:
+            print(f"pairs: {res['both']} succeed on both sides, {res['trained_only']} on the trained side "
+                  f"only, {res['mirrored_only']} on the mirrored side only, {res['neither']} on neither")
+            print("median over pairs of max_j |S(q_mirrored(t)) - q_trained(t)|_j at step t: "
+                  + ", ".join(f"t={t}: {g:.4f}" for t, g in res["gap_median_at"].items()))
+        if self.out:
+            atomic_write_json(self.out, {**res, "command": _command_line(argv)})
+
+
+@dataclasses.dataclass
+class Equivariance:
+    """How equivariant trained policies are, on demo windows: the noise prediction and the sampled actions."""
+
+    run_dirs: tyro.conf.Positional[tuple[str, ...]]
+    """Run folders written by `equibim train` (or `equibim demo`'s demo/baseline, demo/equibim)."""
+    data: str
+    """Dataset whose windows (and their mirror images) are used."""
+    windows: int = 128
+    seed: int = 0
+    out: str | None = None
+    """Also write the results as JSON here."""
+
+    def run(self, argv=None) -> None:
+        from equibim_jax._io import atomic_write_json
+        from equibim_jax.data.dataset import load
+        from equibim_jax.experiments.pipeline import load_policy, open_loop_errors
+
+        demos = load(self.data)
+        res = {}
+        for run_dir in self.run_dirs:
+            model, state, normalizer, config = load_policy(run_dir)
+            env = config["env_spec"].make()
+            ol = open_loop_errors(model, normalizer, {"p": state.ema_params}, demos, env,
+                                  n_windows=self.windows, seed=self.seed)["p"]
+            res[run_dir] = ol
+            eq = ol["equivariance"]
+            print(f"{run_dir}: sampled actions |S pi(S O, S z) - pi(O, z)|: arm {eq['arm_rad']:.4f} rad, "
+                  f"gripper {eq['gripper']:.3f}; action error on demos {ol['demos']['arm_rad']:.4f} rad, "
+                  f"on mirrored demos {ol['mirrored_demos']['arm_rad']:.4f} rad")
+            print("  gap per action dim (normalised rms): "
+                  + " ".join(f"{x:.3f}" for x in eq["per_dim_normalized_rms"]))
         if self.out:
             atomic_write_json(self.out, {**res, "command": _command_line(argv)})
 
@@ -190,6 +254,7 @@ Command = Union[
     Annotated[Generate, tyro.conf.subcommand("generate")],
     Annotated[Train, tyro.conf.subcommand("train")],
     Annotated[Eval, tyro.conf.subcommand("eval")],
+    Annotated[Equivariance, tyro.conf.subcommand("equivariance")],
     Annotated[SymmetryDemo, tyro.conf.subcommand("symmetry")],
     Annotated[Robots, tyro.conf.subcommand("robots")],
 ]
@@ -197,7 +262,7 @@ Command = Union[
 
 def main(argv: list[str] | None = None) -> None:
     cmd = tyro.cli(Command, args=argv)
-    if isinstance(cmd, (Demo, Generate, Train, Eval)):
+    if isinstance(cmd, (Demo, Generate, Train, Eval, Equivariance)):
         cmd.run(argv)
     else:
         cmd.run()

@@ -57,13 +57,32 @@ def test_demo_outputs(tiny_demo):
         assert all(np.isfinite(r["equiv_err"]) and r["equiv_err"] >= 0 for r in rows)
     for name in ("baseline", "equibim"):
         ol = saved[name]["open_loop_error"]
-        for which in ("demos", "mirrored_demos"):
+        for which in ("demos", "mirrored_demos", "equivariance"):
             assert np.isfinite(ol[which]["arm_rad"]) and ol[which]["arm_rad"] > 0
             assert 0 <= ol[which]["gripper"] <= 1
     png = (out / "demo.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
     table = format_table(res)
     assert "baseline" in table and "equibim" in table and "mirrored (right)" in table
+
+
+def test_sampled_action_equivariance_is_zero_for_an_equivariant_policy(tiny_demo):
+    """``open_loop_errors``'s ``equivariance`` compares pi(O, z) with S pi(S O, S_a z):
+    exactly 0 for zero weights (eps = 0, so DDIM only clips and scales the noise, which
+    commutes with S_a), > 0 for the (barely trained, not equivariant) tiny policy."""
+    import jax
+
+    from equibim_jax.experiments.pipeline import open_loop_errors
+
+    out, _ = tiny_demo
+    model, state, normalizer, config = load_policy(out / "demo" / "baseline")
+    demos = load(out / "demo" / "demos.zarr")
+    params = {"zero": jax.tree.map(np.zeros_like, state.ema_params), "trained": state.ema_params}
+    ol = open_loop_errors(model, normalizer, params, demos, config["env_spec"].make(), n_windows=16)
+    assert ol["zero"]["equivariance"]["arm_rad"] < 1e-6
+    assert ol["zero"]["equivariance"]["gripper"] < 1e-6
+    assert ol["zero"]["demos"]["arm_rad"] > 1e-3  # it is not the expert, only equivariant
+    assert ol["trained"]["equivariance"]["arm_rad"] > 1e-3
 
 
 def test_demo_dataset_is_left_only_and_rebuildable(tiny_demo):

@@ -172,6 +172,53 @@ def test_diffusion_loss_terms(setup):
         diffusion_loss(_small_apply, params, batch, jax.random.key(3), sched, None, sym_weight=0.5)
 
 
+def test_sym_loss_in_x0_space(setup):
+    """sym_space="x0" compares the clean actions the eps predictions imply (clipped as in
+    DDIM): 0 for an equivariant model, and for unclipped elements the eps residual times
+    sqrt((1 - abar_k) / abar_k), checked against an unclipped hand computation."""
+    from equibim_jax.policies import add_noise, make_schedule
+    from equibim_jax.training import sample_batch
+    from equibim_jax.training.losses import predict_x0
+
+    sym, ds = setup["sym"], setup["dataset"]
+    s_a = sym["action"]
+    params = jax.tree.map(lambda w: 0.05 * w, _small_params())  # small outputs: nothing clipped
+    batch = sample_batch(ds, jax.random.key(2), 8)
+    sched = make_schedule(100)
+    key = jax.random.key(3)
+
+    def symmetrised(p, x, k, obs):
+        mirrored_obs = {f: sym[f](v) for f, v in obs.items()}
+        return 0.5 * (_small_apply(p, x, k, obs) + s_a(_small_apply(p, s_a(x), k, mirrored_obs)))
+
+    _, eq = diffusion_loss(symmetrised, params, batch, key, sched, sym, sym_weight=0.5, sym_space="x0")
+    assert float(eq["sym"]) < 1e-6
+    _, t = diffusion_loss(_small_apply, params, batch, key, sched, sym, sym_weight=0.5, sym_norm="mse",
+                          sym_space="x0")
+    k_noise, k_step = jax.random.split(key)
+    a0 = batch["action"]
+    noise = jax.random.normal(k_noise, a0.shape, a0.dtype)
+    k = jax.random.randint(k_step, (8,), 0, 100)
+    a_k = add_noise(sched, a0, noise, k)
+    obs = {f: v for f, v in batch.items() if f != "action"}
+    e = _small_apply(params, s_a(a_k), k, {f: sym[f](v) for f, v in obs.items()}) - s_a(_small_apply(params, a_k, k, obs))
+    acp = sched.alphas_cumprod[k][:, None, None]
+    eps, eps_m = _small_apply(params, a_k, k, obs), _small_apply(params, s_a(a_k), k, {f: sym[f](v) for f, v in obs.items()})
+    # Unclipped, the x0 residual is the eps residual scaled by -sqrt((1 - abar) / abar).
+    r = predict_x0(sched, s_a(a_k), eps_m, k, clip=False) - s_a(predict_x0(sched, a_k, eps, k, clip=False))
+    np.testing.assert_allclose(np.asarray(r), np.asarray(-e * jnp.sqrt((1 - acp) / acp)), rtol=1e-3, atol=1e-4)
+    # The loss uses the clipped x0 of both branches (the mirrored one at S_a a_k).
+    want = jnp.mean(jnp.square(predict_x0(sched, s_a(a_k), eps_m, k) - s_a(predict_x0(sched, a_k, eps, k))))
+    assert float(t["sym"]) == pytest.approx(float(want), rel=1e-5)
+    assert float(t["sym"]) > 1e-6
+    _, t_eps = diffusion_loss(_small_apply, params, batch, key, sched, sym, sym_weight=0.5, sym_norm="mse")
+    assert float(t["sym"]) != pytest.approx(float(t_eps["sym"]), rel=1e-2)
+    with pytest.raises(ValueError, match="sym space"):
+        diffusion_loss(_small_apply, params, batch, key, sched, sym, sym_weight=0.5, sym_space="a0")
+    with pytest.raises(ValueError, match="sym_space"):
+        TrainConfig(sym_space="a0")
+
+
 def test_sym_loss_on_a_sub_batch(setup):
     """sym_batch=n: BC still over all B samples, L_sym the mean over the first n of them."""
     from equibim_jax.policies import add_noise, make_schedule
@@ -240,6 +287,11 @@ def test_sym_loss_l2_norm_is_the_per_sample_norm(setup):
 def test_sym_weight_warmup(setup):
     assert float(sym_ramp(jnp.int32(0), 0)) == 1.0
     assert [float(sym_ramp(jnp.int32(s), 4)) for s in (0, 1, 3, 10)] == [0.25, 0.5, 1.0, 1.0]
+    # A delayed start: 0 before start_step, then the ramp from there.
+    assert [float(sym_ramp(jnp.int32(s), 0, 3)) for s in (0, 2, 3, 9)] == [0.0, 0.0, 1.0, 1.0]
+    assert [float(sym_ramp(jnp.int32(s), 2, 3)) for s in (2, 3, 4, 9)] == [0.0, 0.5, 1.0, 1.0]
+    with pytest.raises(ValueError, match="sym_start_step"):
+        dataclasses.replace(TRAIN, sym_start_step=TRAIN.total_steps)
     # In the train loop the lambda in effect is logged per step and ramps as scheduled.
     cfg = dataclasses.replace(TRAIN, sym_warmup_steps=50, steps_per_dispatch=25)
     loop = make_train_loop(POLICY, cfg, setup["dataset"], setup["sym"])

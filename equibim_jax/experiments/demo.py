@@ -57,7 +57,11 @@ class DemoConfig:
     sym_norm: str = "l2"
     """L_sym as the paper's unsquared per-sample norm (l2) or the squared error (mse). At
     lambda 0.1 and 5000 steps, l2 transferred 3/32 to the mirrored side, mse 0/32 (README)."""
+    sym_space: str = "eps"
+    """Compare the noise predictions (eps) or the clean actions they imply (x0) in L_sym."""
     sym_warmup_steps: int = 0
+    sym_start_step: int = 0
+    """L_sym's weight is 0 before this step (BC first), then as --sym-warmup-steps says."""
     """Ramp lambda linearly from 0 over this many steps (0: constant)."""
     sym_batch_size: int | None = None
     """Samples of each batch that also go through the mirrored branch for L_sym (None: all,
@@ -87,8 +91,9 @@ class DemoConfig:
                            warmup_steps=min(self.warmup_steps, self.train_steps),
                            steps_per_dispatch=self.steps_per_dispatch, sym_weight=sym_weight,
                            sym_stop_gradient=self.sym_stop_gradient and sym_weight > 0,
-                           sym_norm=self.sym_norm,
+                           sym_norm=self.sym_norm, sym_space=self.sym_space,
                            sym_warmup_steps=min(self.sym_warmup_steps, self.train_steps) if sym_weight > 0 else 0,
+                           sym_start_step=self.sym_start_step if sym_weight > 0 else 0,
                            sym_batch_size=self.sym_batch_size if sym_weight > 0 else None,
                            seed=self.seed)
 

@@ -345,15 +345,23 @@ def load_policy(run_dir: str | Path):
 # ----------------------------------------------------------------------------- evaluate
 def open_loop_errors(model, normalizer: Normalizer, params: Mapping[str, Any], demos: Demos,
                      env: Env, n_windows: int = 128, seed: int = 0) -> dict:
-    """Open-loop action error on demo windows and on their mirror images.
+    """Open-loop action error on demo windows and on their mirror images, and the
+    equivariance error of the sampled actions.
 
     For ``n_windows`` random windows of ``demos`` (and the same windows mirrored by ``S``,
-    observations and actions alike), sample an action chunk with DDIM and compare the
-    executed part (``Ta`` steps from the current frame) with the expert's, in raw units.
+    observations and actions alike), sample an action chunk with DDIM (noise ``z`` on the
+    demos, ``S_a z`` on the mirrored windows) and compare the executed part (``Ta`` steps
+    from the current frame) with the expert's, in raw units. ``"equivariance"`` compares
+    the two samples with each other: ``|S pi(S O, S_a z) - pi(O, z)|``, 0 for an exactly
+    equivariant policy whatever its fit. Unlike the relative error of the noise prediction
+    logged in training, it is in the units the robot executes: two policies with the same
+    noise-prediction error were measured with 2x different action errors (README).
     Arm joints and gripper openings are reported apart: ``{name: {"demos": {"arm_rad",
-    "gripper"}, "mirrored_demos": {...}}}``, mean absolute errors. The mirrored windows are
-    exactly what the expert does on the other side, so a policy that generalises by
-    symmetry has the same error on both.
+    "gripper"}, "mirrored_demos": {...}, "equivariance": {...}}}``, mean absolute errors;
+    ``"equivariance"`` also holds ``"per_dim_normalized_rms"``, the gap per action
+    dimension in normalised units (where in the action the symmetry breaks).
+    The mirrored windows are exactly what the expert does on the other side, so a policy
+    that generalises by symmetry has the same error on both.
     """
     from equibim_jax.policies import sample_actions
 
@@ -363,27 +371,39 @@ def open_loop_errors(model, normalizer: Normalizer, params: Mapping[str, Any], d
     frames = {k: frames[k] for k in (*fields, "action")}
     dataset = make_dataset(normalizer.normalize(frames), ends, cfg)
     sym = normalized_symmetry(raw_symmetry(env, fields), normalizer)
+    s_a = field_op(sym, "action")
     key = jax.random.key(seed)
     batch = sample_batch(dataset, key, n_windows)
-    batches = {"demos": batch, "mirrored_demos": mirror_batch(sym, batch)}
+    mirrored = mirror_batch(sym, batch)
     n_arm = env.info.n_arm
     arm = np.r_[0:n_arm, n_arm + 1 : 2 * n_arm + 1]
     grip = np.array([n_arm, 2 * n_arm + 1])
     act = normalizer.fields["action"]
     start = cfg.obs_horizon - 1
 
-    @jax.jit
-    def err(p, b):
-        a = sample_actions(model, p, {f: b[f] for f in fields}, jax.random.fold_in(key, 1))
-        d = jnp.abs(act.unnormalize(a) - act.unnormalize(b["action"]))[:, start : start + cfg.action_horizon]
+    def executed(a):
+        return act.unnormalize(a)[:, start : start + cfg.action_horizon]
+
+    def split(d):
         return jnp.mean(d[..., arm]), jnp.mean(d[..., grip])
+
+    @jax.jit
+    def err(p):
+        k = jax.random.fold_in(key, 1)
+        a = sample_actions(model, p, {f: batch[f] for f in fields}, k)
+        a_m = sample_actions(model, p, {f: mirrored[f] for f in fields}, k, noise_op=s_a)
+        gap = (s_a(a_m) - a)[:, start : start + cfg.action_horizon]
+        return ({"demos": split(jnp.abs(executed(a) - executed(batch["action"]))),
+                 "mirrored_demos": split(jnp.abs(executed(a_m) - executed(mirrored["action"]))),
+                 "equivariance": split(jnp.abs(executed(s_a(a_m)) - executed(a)))},
+                jnp.sqrt(jnp.mean(jnp.square(gap), axis=(0, 1))))
 
     out = {}
     for name, p in params.items():
-        out[name] = {}
-        for which, b in batches.items():
-            e_arm, e_grip = jax.device_get(err(p, b))
-            out[name][which] = {"arm_rad": float(e_arm), "gripper": float(e_grip)}
+        res, per_dim = jax.device_get(err(p))
+        out[name] = {which: {"arm_rad": float(e_arm), "gripper": float(e_grip)}
+                     for which, (e_arm, e_grip) in res.items()}
+        out[name]["equivariance"]["per_dim_normalized_rms"] = [float(x) for x in per_dim]
     return out
 
 

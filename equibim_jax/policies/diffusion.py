@@ -297,6 +297,7 @@ def sample_actions(
     obs: Mapping[str, Array],
     key: Array,
     schedule: DiffusionSchedule | None = None,
+    noise_op: Callable[[Array], Array] | None = None,
 ) -> Array:
     """Sample normalised action sequences with DDIM.
 
@@ -305,6 +306,9 @@ def sample_actions(
       obs: ``{field: [B, To, ...]}`` normalised observations.
       key: PRNG key for the initial noise; same key, same output.
       schedule: defaults to ``make_schedule(config.num_train_steps)``.
+      noise_op: applied to the initial noise ``[B, Tp, A]`` drawn from ``key``, e.g. the
+        action mirror ``S_a`` (a signed permutation, so the noise stays ``N(0, I)``): an
+        equivariant network then gives ``S_a`` of the sample from the mirrored inputs.
     Returns:
       ``[B, Tp, A]`` normalised actions.
     """
@@ -313,6 +317,8 @@ def sample_actions(
     variables = {"params": params}
     cond = model.apply(variables, obs, method=NoisePredictor.encode)
     x_init = jax.random.normal(key, (cond.shape[0], cfg.pred_horizon, cfg.action_dim), jnp.float32)
+    if noise_op is not None:
+        x_init = noise_op(x_init)
 
     def eps_fn(x, k):
         return model.apply(variables, x, k, cond, method=NoisePredictor.denoise)
@@ -327,19 +333,21 @@ def predict_action(
     key: Array,
     normalizer: Any,
     schedule: DiffusionSchedule | None = None,
+    noise_op: Callable[[Array], Array] | None = None,
 ) -> dict[str, Array]:
     """Closed-loop inference: normalise, sample, unnormalise, cut the executed window.
 
     Args:
       obs_raw: ``{field: [B, To, ...]}`` raw observations.
       normalizer: an ``equibim_jax.data.Normalizer`` holding the action and obs fields.
+      noise_op: see :func:`sample_actions` (in normalised action space).
     Returns:
       ``{"action_pred": [B, Tp, A], "action": [B, Ta, A]}`` raw-space actions;
       ``"action"`` starts at index ``To - 1`` (the current frame).
     """
     cfg = model.config
     obs = normalizer.normalize(obs_raw)
-    a = sample_actions(model, params, obs, key, schedule)
+    a = sample_actions(model, params, obs, key, schedule, noise_op)
     a = normalizer.fields[cfg.action_key].unnormalize(a)
     start = cfg.obs_horizon - 1
     return {"action_pred": a, "action": a[:, start : start + cfg.action_horizon]}

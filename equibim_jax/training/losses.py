@@ -74,6 +74,16 @@ def bc_loss(eps_pred: Array, noise: Array) -> Array:
 
 
 SYM_NORMS = ("mse", "l2")
+SYM_SPACES = ("eps", "x0")
+
+
+def predict_x0(schedule: DiffusionSchedule, a_k: Array, eps: Array, k: Array,
+               clip: bool = True) -> Array:
+    """The clean action the noise prediction implies: ``(a_k - sqrt(1 - abar_k) eps) /
+    sqrt(abar_k)``, clipped to ``[-1, 1]`` as DDIM clips it (``clip``)."""
+    acp = schedule.alphas_cumprod[k].reshape((-1,) + (1,) * (a_k.ndim - 1))
+    x0 = (a_k - jnp.sqrt(1.0 - acp) * eps) / jnp.sqrt(acp)
+    return jnp.clip(x0, -1.0, 1.0) if clip else x0
 
 
 def _sym_term(eps_orig: Array, eps_mirr: Array, action_op, stop_gradient: bool,
@@ -158,6 +168,7 @@ def diffusion_loss(
     sym_norm: str = "mse",
     sym_scale: Array | float = 1.0,
     sym_batch: int | None = None,
+    sym_space: str = "eps",
 ) -> tuple[Array, dict[str, Array]]:
     """Total loss ``bc + sym_scale * sym_weight * sym`` on one batch, with named terms.
 
@@ -185,6 +196,11 @@ def diffusion_loss(
         the mirrored BC term of ``mirror_augment``) is then the mean over those samples, an
         unbiased estimate of the same expectation for ``1 + sym_batch / B`` of the
         network cost instead of 2x. BC always uses all ``B`` samples.
+      sym_space: ``"eps"`` compares the noise predictions (DESIGN.md's form); ``"x0"``
+        compares the clean actions they imply (:func:`predict_x0`, clipped as in DDIM),
+        the policy's action output at step ``k``. For unclipped elements the ``x0``
+        residual is the ``eps`` residual times ``sqrt((1 - abar_k) / abar_k)``, so it
+        weights the high-noise steps, where DDIM decides the coarse action, far more.
     Returns:
       ``(total, {"bc", "sym", "total"})``, all scalars.
     """
@@ -209,6 +225,13 @@ def diffusion_loss(
     bc = bc_loss(eps_orig, noise)
     if mirror_augment:
         bc = 0.5 * (bc + bc_loss(eps_mirr, s_a(noise[:n])))
-    sym = _sym_term(eps_orig[:n], eps_mirr, s_a, stop_gradient, sym_norm)
+    if sym_space not in SYM_SPACES:
+        raise ValueError(f"sym space must be one of {SYM_SPACES}, got {sym_space!r}")
+    if sym_space == "x0":
+        # S_a is a signed permutation in normalised space: it commutes with the clip.
+        sym = _sym_term(predict_x0(schedule, a_k[:n], eps_orig[:n], k[:n]),
+                        predict_x0(schedule, s_a(a_k[:n]), eps_mirr, k[:n]), s_a, stop_gradient, sym_norm)
+    else:
+        sym = _sym_term(eps_orig[:n], eps_mirr, s_a, stop_gradient, sym_norm)
     total = bc + (sym_scale * sym_weight) * sym
     return total, {"bc": bc, "sym": sym, "total": total}

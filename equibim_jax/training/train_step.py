@@ -34,7 +34,7 @@ from equibim_jax.policies.diffusion import (
     init_params,
     make_schedule,
 )
-from equibim_jax.training.losses import SYM_NORMS, diffusion_loss
+from equibim_jax.training.losses import SYM_NORMS, SYM_SPACES, diffusion_loss
 
 Array = Any
 
@@ -71,8 +71,12 @@ class TrainConfig:
       sym_stop_gradient: stop gradients through the ``S_a eps(a_k, k, O)`` side of ``L_sym``.
       sym_norm: ``"mse"`` (squared, the default) or ``"l2"`` (the paper's unsquared
         per-sample norm) for ``L_sym``.
+      sym_space: ``"eps"`` (the noise predictions) or ``"x0"`` (the clean actions they
+        imply); see :func:`equibim_jax.training.losses.diffusion_loss`.
       sym_warmup_steps: ``lambda`` ramps linearly from 0 to ``sym_weight`` over this many
         steps (0: constant).
+      sym_start_step: ``lambda`` is 0 before this step (plain BC; the mirrored branch still
+        runs), then ramps as ``sym_warmup_steps`` says.
       sym_batch_size: samples per step that also go through the mirrored branch (``L_sym``
         is their mean); ``None``: all ``batch_size``. On the demo's network, 32 of 64 samples
         take 29 ms a step against 38 ms for all 64 and 21 ms for BC alone.
@@ -94,7 +98,9 @@ class TrainConfig:
     sym_weight: float = 0.0
     sym_stop_gradient: bool = False
     sym_norm: str = "mse"
+    sym_space: str = "eps"
     sym_warmup_steps: int = 0
+    sym_start_step: int = 0
     sym_batch_size: int | None = None
     mirror_augment: bool = False
     steps_per_dispatch: int = 10
@@ -119,8 +125,13 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.grad_clip must be > 0 or None, got {self.grad_clip}")
         if self.sym_weight < 0:
             raise ValueError(f"TrainConfig.sym_weight (lambda) must be >= 0, got {self.sym_weight}")
+        if self.sym_space not in SYM_SPACES:
+            raise ValueError(f"TrainConfig.sym_space must be one of {SYM_SPACES}, got {self.sym_space!r}")
         if self.sym_norm not in SYM_NORMS:
             raise ValueError(f"TrainConfig.sym_norm must be one of {SYM_NORMS}, got {self.sym_norm!r}")
+        if not 0 <= self.sym_start_step < self.total_steps:
+            raise ValueError(f"TrainConfig: need 0 <= sym_start_step < total_steps, got "
+                             f"sym_start_step={self.sym_start_step}, total_steps={self.total_steps}")
         if not 0 <= self.sym_warmup_steps <= self.total_steps:
             raise ValueError(
                 f"TrainConfig: need 0 <= sym_warmup_steps <= total_steps, got "
@@ -332,12 +343,13 @@ def base_key(train_config: TrainConfig) -> Array:
     return jax.random.fold_in(jax.random.key(train_config.seed), 1)
 
 
-def sym_ramp(step: Array, warmup_steps: int) -> Array:
-    """``min(1, (step + 1) / warmup_steps)``: the fraction of ``lambda`` at ``step``
-    (1 throughout for ``warmup_steps == 0``)."""
-    if warmup_steps <= 0:
-        return jnp.ones((), jnp.float32)
-    return jnp.minimum(1.0, (step.astype(jnp.float32) + 1.0) / warmup_steps)
+def sym_ramp(step: Array, warmup_steps: int, start_step: int = 0) -> Array:
+    """The fraction of ``lambda`` at ``step``: 0 before ``start_step``, then
+    ``min(1, (step - start_step + 1) / warmup_steps)`` (1 from ``start_step`` on for
+    ``warmup_steps == 0``)."""
+    s = step.astype(jnp.float32) - start_step
+    r = jnp.ones((), jnp.float32) if warmup_steps <= 0 else jnp.minimum(1.0, (s + 1.0) / warmup_steps)
+    return jnp.where(s >= 0, r, 0.0).astype(jnp.float32)
 
 
 def build_step_fn(
@@ -365,7 +377,7 @@ def build_step_fn(
     def step_fn(state: TrainState, key: Array, dataset: OnDeviceDataset):
         k_batch, k_loss = jax.random.split(jax.random.fold_in(key, state.step))
         batch = sample_batch(dataset, k_batch, train_config.batch_size)
-        sym_scale = sym_ramp(state.step, train_config.sym_warmup_steps)
+        sym_scale = sym_ramp(state.step, train_config.sym_warmup_steps, train_config.sym_start_step)
 
         def loss_fn(params):
             return diffusion_loss(
@@ -380,6 +392,7 @@ def build_step_fn(
                 mirror_augment=train_config.mirror_augment,
                 action_key=policy_config.action_key,
                 sym_norm=train_config.sym_norm,
+                sym_space=train_config.sym_space,
                 sym_scale=sym_scale,
                 sym_batch=train_config.sym_batch_size,
             )
