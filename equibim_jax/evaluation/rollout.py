@@ -138,12 +138,27 @@ def evaluate_sides(rollout: Callable, params: Any, key: jax.Array, n_episodes: i
       ``{side: {"success", "ci95", "episodes", "successes", "wall_s", "per_episode",
       "first_success_step"}}``; ``first_success_step`` is -1 for failures.
     """
+    outs, wall = _run_paired(_runner(rollout), params, key, n_episodes, chunk, sides,
+                             ("success", "success_t"), progress, desc)
+    res = {}
+    for side in sides:
+        succ, st = outs[side]["success"].astype(bool), outs[side]["success_t"]
+        res[side] = {**summarize(succ), "wall_s": wall / len(sides), "per_episode": succ.tolist(),
+                     "first_success_step": np.where(st.any(-1), st.argmax(-1), -1).astype(int).tolist()}
+    return res
+
+
+def _run_paired(run: Callable, params: Any, key: jax.Array, n_episodes: int, chunk: int,
+                sides: tuple[str, ...], fields: tuple[str, ...], progress: bool,
+                desc: str) -> tuple[dict, float]:
+    """Run ``run(params, keys [c], mirrored [c])`` (a ``jit(vmap(rollout))``) over
+    ``n_episodes`` keys for each side, in padded batches of ``chunk`` (one shape, one
+    compile). Returns ``({side: {field: np [n_episodes, ...]}}, wall seconds)``."""
     bad = [s for s in sides if s not in ("trained", "mirrored")]
     if bad or not sides:
         raise ValueError(f"sides must be a non-empty subset of ('trained', 'mirrored'), got {sides}")
     if n_episodes < 1 or chunk < 1:
         raise ValueError(f"n_episodes and chunk must be >= 1, got {n_episodes}, {chunk}")
-    run = _runner(rollout)
     keys = jax.random.split(key, n_episodes)
     all_keys = jnp.concatenate([keys] * len(sides))
     flags = jnp.concatenate([jnp.full((n_episodes,), s == "mirrored") for s in sides])
@@ -153,23 +168,17 @@ def evaluate_sides(rollout: Callable, params: Any, key: jax.Array, n_episodes: i
     all_keys = jnp.concatenate([all_keys, all_keys[:pad]])
     flags = jnp.concatenate([flags, flags[:pad]])
     t0 = time.perf_counter()
-    succ, first = [], []
+    got = {f: [] for f in fields}
     with tqdm(total=total, desc=desc, unit="ep", disable=not progress) as bar:
         for i in range(0, total + pad, chunk):
             out = jax.device_get(run(params, all_keys[i : i + chunk], flags[i : i + chunk]))
-            succ.append(np.asarray(out["success"]))
-            st = np.asarray(out["success_t"])
-            first.append(np.where(st.any(-1), st.argmax(-1), -1))
+            for f in fields:
+                got[f].append(np.asarray(out[f]))
             bar.update(min(chunk, total - i))
     wall = time.perf_counter() - t0
-    succ, first = np.concatenate(succ)[:total], np.concatenate(first)[:total]
-    res = {}
-    for j, side in enumerate(sides):
-        sl = slice(j * n_episodes, (j + 1) * n_episodes)
-        res[side] = {**summarize(succ[sl]), "wall_s": wall / len(sides),
-                     "per_episode": succ[sl].astype(bool).tolist(),
-                     "first_success_step": first[sl].astype(int).tolist()}
-    return res
+    got = {f: np.concatenate(v)[:total] for f, v in got.items()}
+    return {side: {f: v[j * n_episodes : (j + 1) * n_episodes] for f, v in got.items()}
+            for j, side in enumerate(sides)}, wall
 
 
 def mirror_pair_gap(env: Env, model, normalizer, params: Any, key: jax.Array, n_episodes: int,
@@ -191,26 +200,12 @@ def mirror_pair_gap(env: Env, model, normalizer, params: Any, key: jax.Array, n_
       "neither"`` pair counts.
     """
     roll = make_policy_rollout(env, model, normalizer, mirror_noise=True, record_qpos=True)
-    run = jax.jit(jax.vmap(roll, in_axes=(None, 0, None)))
-    keys = jax.random.split(key, n_episodes)
-    chunk = min(chunk, n_episodes)
-    pad = (-n_episodes) % chunk
-    keys = jnp.concatenate([keys, keys[:pad]])
-    mirror_q = jax.jit(jax.vmap(jax.vmap(env.sym.qpos)))
-    succ = {"trained": [], "mirrored": []}
-    gaps = []
-    with tqdm(total=n_episodes, desc="mirror pairs", unit="pair", disable=not progress) as bar:
-        for i in range(0, n_episodes + pad, chunk):
-            tr = run(params, keys[i : i + chunk], False)
-            mi = run(params, keys[i : i + chunk], True)
-            g = jnp.max(jnp.abs(mirror_q(mi["qpos_t"]) - tr["qpos_t"]), axis=-1)  # [chunk, T]
-            gaps.append(np.asarray(jax.device_get(g)))
-            succ["trained"].append(np.asarray(tr["success"]))
-            succ["mirrored"].append(np.asarray(mi["success"]))
-            bar.update(min(chunk, n_episodes - i))
-    gap = np.concatenate(gaps)[:n_episodes]
-    s_t = np.concatenate(succ["trained"])[:n_episodes].astype(bool)
-    s_m = np.concatenate(succ["mirrored"])[:n_episodes].astype(bool)
+    outs, _ = _run_paired(jax.jit(jax.vmap(roll, in_axes=(None, 0, 0))), params, key, n_episodes,
+                          chunk, ("trained", "mirrored"), ("success", "qpos_t"), progress, "mirror pairs")
+    q_back = np.asarray(jax.jit(jax.vmap(jax.vmap(env.sym.qpos)))(outs["mirrored"]["qpos_t"]))
+    gap = np.max(np.abs(q_back - outs["trained"]["qpos_t"]), axis=-1)  # [n_episodes, T]
+    s_t = outs["trained"]["success"].astype(bool)
+    s_m = outs["mirrored"]["success"].astype(bool)
     last = gap.shape[1]
     steps = sorted({int(t) for t in at_steps if 1 <= t <= last} | {last})
     return {

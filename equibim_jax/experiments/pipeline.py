@@ -355,7 +355,7 @@ def open_loop_errors(model, normalizer: Normalizer, params: Mapping[str, Any], d
     the two samples with each other: ``|S pi(S O, S_a z) - pi(O, z)|``, 0 for an exactly
     equivariant policy whatever its fit. Unlike the relative error of the noise prediction
     logged in training, it is in the units the robot executes: two policies with the same
-    noise-prediction error were measured with 2x different action errors (README).
+    noise-prediction error were measured 1.5x apart in action error (README).
     Arm joints and gripper openings are reported apart: ``{name: {"demos": {"arm_rad",
     "gripper"}, "mirrored_demos": {...}, "equivariance": {...}}}``, mean absolute errors;
     ``"equivariance"`` also holds ``"per_dim_normalized_rms"``, the gap per action
