@@ -1,6 +1,9 @@
 """Closed-loop policy rollout: shapes, determinism, action chunking, Wilson summary."""
 
+import functools
+
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -41,12 +44,14 @@ def test_policy_rollout_runs_chunks_and_is_deterministic():
     assert summary["episodes"] == 2 and 0.0 <= summary["ci95"][0] <= summary["ci95"][1] <= 1.0
 
 
-def _tiny_env_policy(action_noise=0.0):
-    """An 8-step box env, a one-level policy with To = 1, Tp = Ta = 4, and a normaliser
-    fitted (mirror-consistently) on jittered copies of the reset state."""
+@functools.lru_cache(maxsize=None)  # building it takes ~25 s on 2 cores; all of it is immutable
+def _tiny_env_policy(action_noise=0.0, obs_horizon=1, pred_horizon=4):
+    """An 8-step box env, a one-level policy with To = 1, Tp = Ta = 4 (by default), and a
+    normaliser fitted (mirror-consistently) on jittered copies of the reset state."""
     env = Env(EnvConfig(obs=("qpos", "point_cloud"), n_points=32, episode_length=8), BoxScene())
     cfg = PolicyConfig(
-        action_dim=env.action_size, state_dim=env.action_size, obs_horizon=1, pred_horizon=4,
+        action_dim=env.action_size, state_dim=env.action_size, obs_horizon=obs_horizon,
+        pred_horizon=pred_horizon,
         action_horizon=4, encoder=EncoderConfig(pc_hidden=(8,), pc_out=8, state_out=8, state_hidden=(8,)),
         unet=UNetConfig(down_dims=(8,)), num_inference_steps=2,
     )
@@ -114,3 +119,30 @@ def test_mirrored_noise_makes_an_equivariant_policy_repeat_its_episode_mirrored(
     assert q.shape == (8, env.mjx_model.nq)
     assert np.abs(q[-1, :14] - np.asarray(s.data.qpos)[:14]).max() > 1e-2  # the arms moved
     assert np.abs(q_m - q).max() > 1e-2
+
+
+def test_step_without_observation_keeps_obs_and_changes_nothing_else():
+    env, _, _, _, s = _tiny_env_policy()
+    a = jnp.asarray(s.obs["qpos"])
+    full, blind = jax.jit(lambda s, a: (env.step(s, a), env.step(s, a, observe=False)))(s, a)
+    for f in s.obs:  # the old observation is kept
+        np.testing.assert_array_equal(np.asarray(blind.obs[f]), np.asarray(s.obs[f]))
+    assert not np.array_equal(np.asarray(full.obs["qpos"]), np.asarray(s.obs["qpos"]))
+    for x, y in zip(jax.tree.leaves((full.data, full.info, full.metrics)),
+                    jax.tree.leaves((blind.data, blind.info, blind.metrics))):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=0, atol=1e-6)
+
+
+def test_rollout_observing_only_what_the_policy_reads_is_the_same_episode():
+    # To = 2, Ta = 4: the default rollout renders 2 of every 4 steps; the episode (states,
+    # successes) must be the one of a rollout that observes every step.
+    env, model, params, norm, _ = _tiny_env_policy(obs_horizon=2, pred_horizon=8)
+    key = jax.random.key(3)
+    outs = [jax.jit(make_policy_rollout(env, model, norm, record_qpos=True, observe_every_step=e))(
+        params, key, False) for e in (False, True)]
+    np.testing.assert_allclose(np.asarray(outs[0]["qpos_t"]), np.asarray(outs[1]["qpos_t"]),
+                               rtol=0, atol=1e-5)
+    np.testing.assert_array_equal(np.asarray(outs[0]["success_t"]), np.asarray(outs[1]["success_t"]))
+    assert outs[0]["qpos_t"].shape == (8, env.mj_model.nq)
+    # and it is not trivially so: the arm moves during the episode
+    assert float(np.abs(np.diff(np.asarray(outs[0]["qpos_t"]), axis=0)).max()) > 1e-4

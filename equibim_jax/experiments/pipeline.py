@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import json
 import time
 from pathlib import Path
@@ -141,6 +142,9 @@ def generate_dataset(spec: EnvSpec, out: str | Path, n_episodes: int, seed: int 
         raise FileExistsError(f"{out} exists; pass overwrite=True (--overwrite) to replace it")
     env = spec.make()
     chunk = max(1, min(int(chunk), 32, int(n_episodes)))  # <= 32 envs per vmap on CPU
+    # Equal batches that cover n_episodes exactly (48 -> 2 x 24, not 2 x 32): the expert
+    # rarely fails, so a last batch padded to ``chunk`` would mostly simulate spares.
+    chunk = math.ceil(int(n_episodes) / math.ceil(int(n_episodes) / chunk))
     demos, stats = generate_demos(env, jax.random.key(seed), n_episodes, chunk=chunk,
                                   progress=progress,
                                   meta={"seed": int(seed), "env_spec": _json_ready(spec)})

@@ -421,12 +421,18 @@ class Env:
         return self._finish(data, {"step": jnp.zeros((), jnp.int32), "success": jnp.zeros((), bool), **task_info},
                             nan=jnp.zeros((), jnp.float32), clipped=jnp.zeros((), jnp.float32))
 
-    def step(self, state: State, action: jax.Array) -> State:
+    def step(self, state: State, action: jax.Array, observe: bool = True) -> State:
         """Advance one control step (``n_substeps`` physics steps in ``lax.scan``).
 
         A NaN or infinite action is refused: the previous actuator targets are held and
         ``metrics["nan_action"]`` is 1. Targets outside the actuator ranges are clipped and
         ``metrics["clipped"]`` counts the clipped entries.
+
+        ``observe=False`` (a Python bool) skips the observation: the returned state keeps
+        ``state.obs`` (stale) while physics, reward, success and metrics are computed as
+        usual. Rendering is about a third of a step's cost with a point cloud (0.46 of
+        1.33 ms per env-step at 32 envs on 2 CPU cores), so a closed-loop rollout that
+        only needs the observations its policy reads uses it for the other steps.
         """
         action = jnp.asarray(action)
         if action.shape != (self.action_size,):
@@ -442,16 +448,18 @@ class Env:
         ctrl = jnp.where(bad, state.data.ctrl, clipped_ctrl)
         data = self._physics(state.data, ctrl)
         info = {**state.info, "step": state.info["step"] + 1}
-        return self._finish(data, info, nan=bad.astype(jnp.float32), clipped=n_clipped)
+        return self._finish(data, info, nan=bad.astype(jnp.float32), clipped=n_clipped,
+                            obs=None if observe else state.obs)
 
-    def _finish(self, data, info, nan, clipped) -> State:
+    def _finish(self, data, info, nan, clipped, obs=None) -> State:
         reward, success, task_metrics = self.scene.evaluate(data, info, self)
         success = jnp.logical_or(info["success"], success)  # latched
         info = {**info, "success": success}
         done = info["step"] >= self.config.episode_length
         metrics = {"nan_action": nan, "clipped": clipped, "success": success.astype(jnp.float32),
                    **task_metrics}
-        return State(data=data, obs=self.observe(data), reward=jnp.asarray(reward, jnp.float32),
+        return State(data=data, obs=self.observe(data) if obs is None else obs,
+                     reward=jnp.asarray(reward, jnp.float32),
                      done=done, metrics=metrics, info=info)
 
     # ------------------------------------------------------------------ the mirror
