@@ -17,7 +17,7 @@ demo: $(STAMP)
 	$(VENV)/bin/equibim demo
 
 demo-long: $(STAMP)
-	$(VENV)/bin/equibim demo --batch-size 64 --train-steps 10000 --no-sym-stop-gradient --out-dir results/demo10k
+	$(VENV)/bin/equibim demo --batch-size 64 --train-steps 10000 --no-sym-stop-gradient --sym-batch-size None --out-dir results/demo10k
 
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest -m "not slow" -q

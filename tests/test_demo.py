@@ -29,7 +29,7 @@ ENV = EnvSpec(n_points=16, episode_length=212)
 @pytest.fixture(scope="module")
 def tiny_demo(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo")
-    cfg = DemoConfig(env=ENV, n_demos=2, model=MODEL, batch_size=8, train_steps=4,
+    cfg = DemoConfig(env=ENV, n_demos=2, model=MODEL, batch_size=8, sym_batch_size=4, train_steps=4,
                      steps_per_dispatch=2, warmup_steps=1, eval_episodes=2, out_dir=str(out))
     res = run_demo(cfg, command="pytest tiny demo", progress=False)
     return out, res
@@ -163,6 +163,8 @@ def test_bad_settings_are_refused_with_a_clear_message():
         DemoConfig(train_steps=120, steps_per_dispatch=50)
     with pytest.raises(ValueError, match="sym_weight"):
         DemoConfig(sym_weight=0.0)
+    with pytest.raises(ValueError, match="sym_batch_size"):
+        DemoConfig(batch_size=8)  # the default sym_batch_size (16) is larger
 
 
 def test_demo_train_configs_differ_only_in_l_sym():

@@ -90,6 +90,9 @@ class DemoConfig:
                              f"steps_per_dispatch ({self.steps_per_dispatch})")
         if not self.sym_weight > 0:
             raise ValueError("sym_weight must be > 0 (the +EquiBim run needs L_sym)")
+        if self.sym_batch_size is not None and not 1 <= self.sym_batch_size <= self.batch_size:
+            raise ValueError(f"sym_batch_size ({self.sym_batch_size}) must be in [1, batch_size="
+                             f"{self.batch_size}] or None (all samples)")
 
     def train_config(self, sym_weight: float) -> TrainConfig:
         return TrainConfig(batch_size=self.batch_size, learning_rate=self.learning_rate,
