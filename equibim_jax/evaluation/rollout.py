@@ -41,8 +41,9 @@ def make_policy_rollout(env: Env, model, normalizer, length: int | None = None,
       record_qpos: also return ``"qpos_t"``, ``[n_chunks * Ta, nq]`` after every step.
       observe_every_step: render the observations after every control step. By default
         only the last ``To`` steps of each chunk are observed (the policy reads nothing
-        else; ``Env.step(observe=False)`` for the others), which makes the episode the same
-        and about a quarter cheaper with a point cloud (``Ta = 8``, ``To = 2``).
+        else; ``Env.step(observe=False)`` for the others): the same episode, cheaper with a
+        point cloud (32 episodes of the demo's policy, ``Ta = 8``, ``To = 2``: 14.8 s
+        against 17.9 s on 2 CPU cores, compile apart).
     Returns:
       ``rollout(params, key, mirrored=False)`` -> ``{"success": [] bool (latched), "side": [],
       "success_t": [n_chunks * Ta] bool, "final_qpos": [nq]}``. ``vmap`` over keys for a

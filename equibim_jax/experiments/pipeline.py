@@ -12,8 +12,8 @@
 from __future__ import annotations
 
 import dataclasses
-import math
 import json
+import math
 import time
 from pathlib import Path
 from typing import Any, Mapping
