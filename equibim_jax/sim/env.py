@@ -416,7 +416,7 @@ class Env:
         """A new episode from ``key`` (pure; one environment)."""
         qpos, task_info = self.scene.init(key, self)
         data = mjx.make_data(self.mjx_model)
-        data = data.replace(qpos=jnp.asarray(qpos, data.qpos.dtype), ctrl=jnp.asarray(self.home_ctrl))
+        data = data.replace(qpos=jnp.asarray(qpos, data.qpos.dtype), ctrl=jnp.asarray(self.home_ctrl, data.ctrl.dtype))
         data = mjx.forward(self.mjx_model, data)
         return self._finish(data, {"step": jnp.zeros((), jnp.int32), "success": jnp.zeros((), bool), **task_info},
                             nan=jnp.zeros((), jnp.float32), clipped=jnp.zeros((), jnp.float32))
