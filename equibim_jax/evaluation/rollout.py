@@ -42,8 +42,8 @@ def make_policy_rollout(env: Env, model, normalizer, length: int | None = None,
       observe_every_step: render the observations after every control step. By default
         only the last ``To`` steps of each chunk are observed (the policy reads nothing
         else; ``Env.step(observe=False)`` for the others): the same episode, cheaper with a
-        point cloud (32 episodes of the demo's policy, ``Ta = 8``, ``To = 2``: 14.8 s
-        against 17.9 s on 2 CPU cores, compile apart).
+        point cloud (32 episodes of the demo's policy, ``Ta = 8``, ``To = 2``: 10.0 s
+        against 13.0 s on 2 CPU cores, compile apart; ``benchmarks/rollout.py``).
     Returns:
       ``rollout(params, key, mirrored=False)`` -> ``{"success": [] bool (latched), "side": [],
       "success_t": [n_chunks * Ta] bool, "final_qpos": [nq]}``. ``vmap`` over keys for a
