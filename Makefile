@@ -17,7 +17,7 @@ demo: $(STAMP)
 	$(VENV)/bin/equibim demo
 
 demo-long: $(STAMP)
-	$(VENV)/bin/equibim demo --batch-size 64 --train-steps 10000 --no-sym-stop-gradient --sym-batch-size None --out-dir results/demo10k
+	$(VENV)/bin/equibim demo --train.batch-size 64 --train.total-steps 10000 --train.no-sym-stop-gradient --train.sym-batch-size None --out-dir results/demo10k
 
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest -m "not slow" -q
@@ -27,6 +27,7 @@ test-slow: $(STAMP)
 
 bench: $(STAMP)
 	mkdir -p results && $(VENV)/bin/python benchmarks/sim.py --out results/bench_sim.json
+	$(VENV)/bin/python benchmarks/report.py
 
 clean:
 	rm -rf $(VENV) *.egg-info

@@ -17,10 +17,9 @@ del _enable_from_env
 __version__ = "0.1.0"
 
 
-
 def __getattr__(name):
-    # ``make_env`` / ``task_names`` load MuJoCo and MJX, so they are imported on first use.
-    if name in ("make_env", "task_names"):
+    # The task registry loads MuJoCo and MJX, so it is imported on first use.
+    if name in ("make_env", "task_names", "make_expert"):
         from equibim_jax import tasks
 
         return getattr(tasks, name)
@@ -30,6 +29,7 @@ def __getattr__(name):
 __all__ = [
     "__version__",
     "make_env",
+    "make_expert",
     "task_names",
     "compilation_cache_dir",
     "disable_compilation_cache",

@@ -1,12 +1,19 @@
-"""Dataset round trip, atomic overwrite and corruption rejection."""
+"""Dataset round trip, atomic overwrite (and its failure paths) and corruption rejection."""
 
+import ctypes
+import errno
 import json
 import os
+import sys
 
 import numpy as np
 import pytest
+import zarr
 
+from equibim_jax.data import dataset as ds
 from equibim_jax.data.dataset import DatasetError, Demos, load, save
+
+LINUX = sys.platform.startswith("linux")
 
 
 def _demos(e=3, t=5, seed=0):
@@ -17,7 +24,6 @@ def _demos(e=3, t=5, seed=0):
         action=rng.normal(size=(e, t, 14)).astype(np.float32),
         length=np.array([5, 3, 4], np.int32)[:e],
         success=np.ones(e, bool),
-        side=np.array([1.0, -1.0, 1.0], np.float32)[:e],
         meta={"task": "place_empty_cup", "seed": seed},
     )
 
@@ -30,43 +36,144 @@ def test_round_trip(tmp_path):
         np.testing.assert_array_equal(back.obs[k], d.obs[k])
     np.testing.assert_array_equal(back.action, d.action)
     np.testing.assert_array_equal(back.length, d.length)
-    np.testing.assert_array_equal(back.side, d.side)
+    np.testing.assert_array_equal(back.success, d.success)
+    assert sorted(os.listdir(p)) == ["action", "length", "obs", "success", "zarr.json"]
     assert back.meta["n_steps"] == 12 and back.meta["seed"] == 0
     with pytest.raises(DatasetError, match="expected task='stamp_seal'"):
         load(p, expect={"task": "stamp_seal"})
 
 
-def test_no_silent_overwrite_and_atomic_replace(tmp_path):
+def _assert_is(demos, d):
+    for k in d.obs:
+        np.testing.assert_array_equal(demos.obs[k], d.obs[k])
+    np.testing.assert_array_equal(demos.action, d.action)
+    assert demos.meta["seed"] == d.meta["seed"]
+
+
+def _leftovers(directory):
+    """Temporary or backup entries beside the dataset."""
+    return [f for f in os.listdir(directory) if f.startswith(".")]
+
+
+def test_no_silent_overwrite(tmp_path):
     p = tmp_path / "demos.zarr"
     save(_demos(seed=0), p)
-    with pytest.raises(FileExistsError):
+    with pytest.raises(FileExistsError, match="overwrite=True"):
         save(_demos(seed=1), p)
-    # A failing write (bad metadata) leaves the old dataset intact.
-    with pytest.raises(DatasetError, match="JSON"):
-        _demos_bad_meta()
-    assert load(p).meta["seed"] == 0
+    _assert_is(load(p), _demos(seed=0))
+
+
+def test_overwrite_exchanges_atomically(tmp_path, monkeypatch):
+    p = tmp_path / "demos.zarr"
+    save(_demos(seed=0), p)
+    real_exchange, swaps = ds._exchange, []
+
+    def exchange(a, b):
+        assert b == p and load(p).meta["seed"] == 0  # the old dataset is in place up to the swap
+        assert load(a).meta["seed"] == 1  # and the new one is complete before it
+        swapped = real_exchange(a, b)
+        swaps.append(swapped)
+        if swapped:  # one step: the new dataset in place, the old one at the temporary name
+            assert load(p).meta["seed"] == 1 and load(a).meta["seed"] == 0
+        return swapped
+
+    real_replace, renames = os.replace, []
+
+    def replace(a, b, **kw):
+        renames.append((os.fspath(a), os.fspath(b)))
+        return real_replace(a, b, **kw)
+
+    monkeypatch.setattr(ds, "_exchange", exchange)
+    monkeypatch.setattr(os, "replace", replace)
     save(_demos(seed=1), p, overwrite=True)
-    assert load(p).meta["seed"] == 1
-    assert not [f for f in os.listdir(tmp_path) if f.startswith(".")]  # no temp dirs left
+    monkeypatch.undo()
+    _assert_is(load(p), _demos(seed=1))
+    assert not _leftovers(tmp_path)
+    assert len(swaps) == 1
+    if LINUX:
+        assert swaps == [True], "renameat2(RENAME_EXCHANGE) was not used on Linux"
+        assert not [r for r in renames if str(p) in r], f"the dataset was renamed: {renames}"
 
 
-def _demos_bad_meta():
-    d = _demos()
-    return Demos(obs=d.obs, action=d.action, length=d.length, success=d.success, side=d.side,
-                 meta={"bad": object()})
+@pytest.mark.parametrize("how", ["no_function", "ENOSYS", "EINVAL"])
+def test_overwrite_falls_back_without_exchange(tmp_path, monkeypatch, how):
+    def renameat2(*_):  # what libc returns where the kernel or filesystem lacks the flag
+        ctypes.set_errno(getattr(errno, how))
+        return -1
+
+    monkeypatch.setattr(ds, "_renameat2", lambda: None if how == "no_function" else renameat2)
+    p = tmp_path / "demos.zarr"
+    save(_demos(seed=0), p)
+    save(_demos(seed=1), p, overwrite=True)
+    _assert_is(load(p), _demos(seed=1))
+    assert not _leftovers(tmp_path)
+
+
+@pytest.mark.skipif(not LINUX, reason="renameat2 is Linux-only")
+def test_exchange_errors_are_raised(tmp_path):
+    (tmp_path / "a").mkdir()
+    with pytest.raises(OSError, match="renameat2.*No such file") as err:
+        ds._exchange(tmp_path / "a", tmp_path / "missing")
+    assert err.value.errno == errno.ENOENT
+
+
+def test_failed_write_keeps_old_dataset(tmp_path, monkeypatch):
+    p = tmp_path / "demos.zarr"
+    save(_demos(seed=0), p)
+    real, calls = zarr.Group.create_array, []
+
+    def create_array(self, *args, **kwargs):  # the first array is written, the second fails
+        calls.append(args[0] if args else kwargs.get("name"))
+        if len(calls) == 2:
+            raise OSError(errno.ENOSPC, "No space left on device (simulated)")
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(zarr.Group, "create_array", create_array)
+    with pytest.raises(OSError, match="simulated"):
+        save(_demos(seed=1), p, overwrite=True)
+    monkeypatch.undo()
+    assert len(calls) == 2
+    _assert_is(load(p), _demos(seed=0))
+    assert not _leftovers(tmp_path)
+
+
+@pytest.mark.parametrize("where", ["exchange", "fallback_second_rename"])
+def test_failed_swap_keeps_old_dataset(tmp_path, monkeypatch, where):
+    p = tmp_path / "demos.zarr"
+    save(_demos(seed=0), p)
+
+    def fail(*_, **__):
+        raise OSError(errno.EIO, "I/O error (simulated)")
+
+    if where == "exchange":
+        monkeypatch.setattr(ds, "_exchange", fail)
+    else:  # no exchange: the old dataset is moved away, then moving the new one in fails
+        monkeypatch.setattr(ds, "_exchange", lambda a, b: False)
+        real_replace = os.replace
+        monkeypatch.setattr(os, "replace", lambda a, b, **kw: fail() if os.fspath(a).endswith(".tmp")
+                            and os.fspath(b) == os.fspath(p) else real_replace(a, b, **kw))
+    with pytest.raises(OSError, match="simulated"):
+        save(_demos(seed=1), p, overwrite=True)
+    monkeypatch.undo()
+    _assert_is(load(p), _demos(seed=0))
+    assert not _leftovers(tmp_path)
 
 
 def test_validation_errors():
     d = _demos()
     with pytest.raises(DatasetError, match="NaN"):
         Demos(obs=d.obs, action=np.full_like(d.action, np.nan), length=d.length, success=d.success,
-              side=d.side, meta={})
+              meta={})
     with pytest.raises(DatasetError, match="obs/qpos has shape"):
         Demos(obs={"qpos": d.obs["qpos"][:, :2]}, action=d.action, length=d.length,
-              success=d.success, side=d.side, meta={})
+              success=d.success, meta={})
     with pytest.raises(DatasetError, match="episode lengths"):
         Demos(obs=d.obs, action=d.action, length=np.array([6, 1, 1]), success=d.success,
-              side=d.side, meta={})
+              meta={})
+    with pytest.raises(DatasetError, match="JSON"):
+        Demos(obs=d.obs, action=d.action, length=d.length, success=d.success, meta={"bad": object()})
+    with pytest.raises(DatasetError, match="success has shape"):
+        Demos(obs=d.obs, action=d.action, length=d.length, success=d.success[:2], meta={})
 
 
 def test_corruption_is_rejected(tmp_path):
@@ -89,3 +196,18 @@ def test_corruption_is_rejected(tmp_path):
     (p2 / "action" / "zarr.json").unlink()
     with pytest.raises(DatasetError, match="corrupt"):
         load(p2)
+
+
+def test_old_and_unknown_versions_are_rejected(tmp_path):
+    p = save(_demos(), tmp_path / "demos.zarr")
+    meta_file = p / "zarr.json"
+    meta = json.loads(meta_file.read_text())
+    assert meta["attributes"]["equibim"]["version"] == 2
+    meta["attributes"]["equibim"]["version"] = 1
+    meta_file.write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match=r"version 1, .* version 2 .*regenerate it with `equibim generate`"):
+        load(p)
+    meta["attributes"]["equibim"]["version"] = 3
+    meta_file.write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match="format version 3; this code reads version 2"):
+        load(p)

@@ -1,4 +1,4 @@
-"""Diffusion policy: configs, convs, U-Net, encoders, schedule, DDIM sampling, EMA."""
+"""The dp3 diffusion policy: configs, convs, U-Net, encoders, schedule, DDIM sampling, EMA."""
 
 import dataclasses
 import math
@@ -8,28 +8,21 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from equibim_jax.policies import (
-    Conv1d,
-    EmaConfig,
-    EncoderConfig,
+from equibim_jax.data import FieldNormalizer, Normalizer
+from equibim_jax.policies import DP3Config, EncoderConfig, UNetConfig, make_policy, predict_action
+from equibim_jax.policies.diffusion import (
     NoisePredictor,
-    PointCloudEncoder,
-    PolicyConfig,
-    UNetConfig,
     ddim_loop,
     ddim_timesteps,
-    ema_decay,
-    ema_update,
-    example_obs,
-    init_params,
     make_schedule,
-    predict_action,
-    sample_actions,
     squared_cosine_betas,
 )
-from equibim_jax.data import FieldNormalizer, Normalizer
+from equibim_jax.policies.dp3 import ddim_sample
+from equibim_jax.policies.encoders import PointCloudEncoder
+from equibim_jax.policies.unet1d import Conv1d
+from equibim_jax.training.ema import EmaConfig, ema_decay, ema_update
 
-TINY = PolicyConfig(
+TINY = DP3Config(
     action_dim=4,
     state_dim=4,
     obs_horizon=2,
@@ -42,8 +35,14 @@ TINY = PolicyConfig(
 
 @pytest.fixture(scope="module")
 def tiny():
-    model, params = init_params(TINY, jax.random.key(0))
-    return model, params
+    policy = make_policy("dp3", TINY)
+    return NoisePredictor(TINY), policy, policy.init(jax.random.key(0))
+
+
+def example_obs(config, batch=1, num_points=16):
+    """Zero observations of the shapes the encoder reads: ``{state: [B, To, D], pc: [B, To, N, 3]}``."""
+    return {config.encoder.state_key: jnp.zeros((batch, config.obs_horizon, config.state_dim), jnp.float32),
+            config.encoder.pc_key: jnp.zeros((batch, config.obs_horizon, num_points, 3), jnp.float32)}
 
 
 # ---------------------------------------------------------------- configs
@@ -66,13 +65,13 @@ def test_unet_config_errors(kwargs, match):
 
 def test_policy_config_errors():
     with pytest.raises(ValueError, match="divisible by 4"):
-        PolicyConfig(action_dim=2, state_dim=2, pred_horizon=10, action_horizon=4)
+        DP3Config(action_dim=2, state_dim=2, pred_horizon=10, action_horizon=4)
     with pytest.raises(ValueError, match="exceeds pred_horizon"):
-        PolicyConfig(action_dim=2, state_dim=2, obs_horizon=2, pred_horizon=8, action_horizon=8)
+        DP3Config(action_dim=2, state_dim=2, obs_horizon=2, pred_horizon=8, action_horizon=8)
     with pytest.raises(ValueError, match="num_inference_steps"):
-        PolicyConfig(action_dim=2, state_dim=2, num_inference_steps=200)
+        DP3Config(action_dim=2, state_dim=2, num_inference_steps=200)
     with pytest.raises(ValueError, match="action_dim"):
-        PolicyConfig(action_dim=0, state_dim=2)
+        DP3Config(action_dim=0, state_dim=2)
     # Hashable, so usable as a static argument.
     assert hash(TINY) == hash(dataclasses.replace(TINY))
 
@@ -103,7 +102,7 @@ def test_im2col_conv_matches_lax_conv(k, stride, length):
 
 
 def test_noise_predictor_shapes_and_impls_agree(tiny):
-    model, params = tiny
+    model, policy, params = tiny
     obs = example_obs(TINY, batch=3, num_points=10)
     obs = jax.tree.map(lambda o: jax.random.normal(jax.random.key(3), o.shape), obs)
     x = jax.random.normal(jax.random.key(4), (3, 8, 4))
@@ -119,6 +118,9 @@ def test_noise_predictor_shapes_and_impls_agree(tiny):
         )
 
     eps, eps_xla, eps_k = run(params)
+    # The policy's apply is the same network.
+    eps_policy = jax.jit(policy.apply)(params, {"obs": obs, "noisy_action": x, "k": k})
+    np.testing.assert_array_equal(eps_policy, eps)
     assert eps.shape == (3, 8, 4) and eps.dtype == jnp.float32
     np.testing.assert_allclose(eps, eps_xla, atol=1e-4)
     # The step embedding matters: different k, different prediction.
@@ -136,7 +138,7 @@ def test_point_cloud_encoder_is_permutation_invariant():
 
 
 def test_missing_obs_field_is_a_clear_error(tiny):
-    model, params = tiny
+    model, _, params = tiny
     with pytest.raises(KeyError, match="missing fields"):
         model.apply({"params": params}, jnp.zeros((1, 8, 4)), jnp.zeros((1,), jnp.int32),
                     {"qpos": jnp.zeros((1, 2, 4))})
@@ -187,16 +189,20 @@ def test_ddim_is_equivariant_for_an_equivariant_eps():
 
 
 def test_sample_actions_shapes_and_determinism(tiny):
-    model, params = tiny
+    model, policy, params = tiny
     obs = jax.tree.map(lambda o: o + 0.3, example_obs(TINY, batch=2, num_points=10))
     # Raw action = normalised / 2 + 1; observations pass through unchanged.
     norm = Normalizer({"action": FieldNormalizer(scale=jnp.full((4,), 2.0), offset=jnp.full((4,), -2.0))})
 
     @jax.jit
     def sample(p, o, key):
-        return sample_actions(model, p, o, key), predict_action(model, p, o, key, norm)
+        return policy.sample(p, o, key, None), predict_action(policy, p, o, key, norm)
 
     a1, pred = sample(params, obs, jax.random.key(0))
+    # The policy's sampler is DDIM on the training schedule.
+    a_ddim = jax.jit(lambda p, o, key: ddim_sample(model, p, o, key, make_schedule(TINY.num_train_steps)))(
+        params, obs, jax.random.key(0))
+    np.testing.assert_allclose(a_ddim, a1, atol=1e-6)
     a2, _ = sample(params, obs, jax.random.key(0))
     a3, _ = sample(params, obs, jax.random.key(1))
     assert a1.shape == (2, TINY.pred_horizon, TINY.action_dim)

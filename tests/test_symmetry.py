@@ -155,26 +155,71 @@ def test_image_flip_known_pixels_nhwc_nchw():
         sy.flip_image(img, "HWNC")
 
 
-def test_point_cloud_camera_form_agrees_for_camera_on_plane():
+def _cam_to_world(x_ax, y_ax, pos):
+    """Camera-to-world [4, 4] from the camera's x and y axes in the world and its position."""
+    x_ax = np.asarray(x_ax, float) / np.linalg.norm(x_ax)
+    y_ax = np.asarray(y_ax, float) - np.dot(y_ax, x_ax) * x_ax
+    y_ax /= np.linalg.norm(y_ax)
+    t = np.eye(4)
+    t[:3, :3] = np.stack([x_ax, y_ax, np.cross(x_ax, y_ax)], 1)  # columns: camera axes
+    t[:3, 3] = pos
+    return t
+
+
+def _to_cam(t, p):
+    """World points [..., 3] into the frame of camera-to-world ``t`` [4, 4]."""
+    return (p - t[:3, 3]) @ t[:3, :3]
+
+
+def _to_world(t, p):
+    return p @ t[:3, :3].T + t[:3, 3]
+
+
+def test_point_cloud_camera_hand_checked_off_plane():
+    # Mirror y = 0; camera at y = 0.3 with x axis = world +y, y axis = world -x, z = world z.
     m = sy.Mirror.from_axis("y")
-    # Head camera on y = 0 looking down and forward; its x axis is (0, -1, 0).
-    x_ax = np.array([0.0, -1.0, 0.0])
-    y_ax = np.array([np.sin(0.6), 0.0, np.cos(0.6)])
-    z_ax = np.cross(x_ax, y_ax)
-    r_wc = np.stack([x_ax, y_ax, z_ax], 1)  # columns: camera axes in the world
-    cam_pos = np.array([-0.1, 0.0, 0.9])
-    t_cam = np.eye(4)
-    t_cam[:3, :3] = r_wc.T
-    t_cam[:3, 3] = -r_wc.T @ cam_pos
-    pts = np.random.default_rng(0).normal(size=(3, 50, 6))  # xyz + rgb
-    a = np.asarray(sy.reflect_point_cloud(m, pts))
-    b = np.asarray(sy.reflect_point_cloud_camera(pts, t_cam, axis=0))
-    np.testing.assert_allclose(a, b, atol=1e-12)
-    np.testing.assert_array_equal(a[..., 3:], pts[..., 3:])
-    # A camera off the plane gives a different answer.
-    t_off = t_cam.copy()
-    t_off[:3, 3] = -r_wc.T @ (cam_pos + np.array([0, 0.2, 0]))
-    assert not np.allclose(np.asarray(sy.reflect_point_cloud_camera(pts, t_off)), a, atol=1e-3)
+    t = _cam_to_world([0, 1, 0], [-1, 0, 0], [0.0, 0.3, 0.0])
+    # Camera (0.1, 0.2, 0.5) is world (-0.2, 0.4, 0.5); its mirror image (-0.2, -0.4, 0.5) is
+    # camera (-0.4 - 0.3, 0.2, 0.5) = (-0.7, 0.2, 0.5). Mirroring about a plane through the
+    # camera would give camera x = -0.1 instead (world y = 0.2).
+    out = np.asarray(sy.reflect_point_cloud_camera(m, np.array([[0.1, 0.2, 0.5]]), t))
+    np.testing.assert_allclose(out, [[-0.7, 0.2, 0.5]], atol=1e-12)
+
+
+@pytest.mark.parametrize("mirror", MIRRORS, ids=["y", "x+0.25", "oblique"])
+def test_point_cloud_camera_off_plane_matches_world_reflection(mirror):
+    rng = np.random.default_rng(3)
+    # A pitched and yawed camera at y = 0.3 (off every plane in MIRRORS).
+    t = _cam_to_world([np.sin(0.4), -np.cos(0.4), 0.0], [0.8 * np.cos(0.4), 0.8 * np.sin(0.4), 0.6],
+                      [-0.2, 0.3, 0.75])
+    world = rng.normal(size=(2, 4, 50, 3))
+    cam = np.concatenate([_to_cam(t, world), rng.uniform(size=(2, 4, 50, 3))], -1)  # xyz + rgb
+    out = np.asarray(sy.reflect_point_cloud_camera(mirror, cam, t))
+    assert out.shape == cam.shape
+    np.testing.assert_allclose(_to_world(t, out[..., :3]), sy.reflect_points(mirror, world), atol=1e-12)
+    np.testing.assert_array_equal(out[..., 3:], cam[..., 3:])
+    # An involution, also jitted and with one camera pose per batch element.
+    np.testing.assert_allclose(sy.reflect_point_cloud_camera(mirror, out, t), cam, atol=1e-12)
+    ts = np.stack([t, _cam_to_world([0, 0, 1], [1, 0, 0], [0.5, -0.4, 0.2])])  # [2, 4, 4]
+    cam2 = np.stack([_to_cam(ts[i], world[i]) for i in range(2)])  # [2, 4, 50, 3]
+    f = jax.jit(lambda p, tt: sy.reflect_point_cloud_camera(mirror, p, tt[:, None]))
+    out2 = np.asarray(f(cam2, ts))
+    for i in range(2):
+        np.testing.assert_allclose(_to_world(ts[i], out2[i]), sy.reflect_points(mirror, world[i]), atol=1e-12)
+    np.testing.assert_allclose(f(out2, ts), cam2, atol=1e-12)
+    with pytest.raises(ValueError, match="4, 4"):
+        sy.reflect_point_cloud_camera(mirror, cam, t[:3])
+
+
+def test_point_cloud_camera_on_plane_is_x_flip():
+    m = sy.Mirror.from_axis("y")
+    # Head camera of robot A: on y = 0, x axis (0, -1, 0), pitched down.
+    t = _cam_to_world([0, -1, 0], [0.8, 0, 0.6], [-0.2, 0.0, 0.75])
+    world = np.random.default_rng(0).normal(size=(3, 50, 3))
+    cam = _to_cam(t, world)
+    out = np.asarray(sy.reflect_point_cloud_camera(m, cam, t))
+    np.testing.assert_allclose(out, cam * np.array([-1.0, 1.0, 1.0]), atol=1e-12)
+    np.testing.assert_allclose(_to_world(t, out), sy.reflect_point_cloud(m, world), atol=1e-12)
 
 
 def test_operators_jit_vmap_and_batch_dims():

@@ -6,19 +6,31 @@ Layout of a dataset directory ``NAME.zarr``::
     action           [E, T, A]     the expert's actions
     length           [E]           valid steps of each episode (the rest is padding)
     success          [E]           whether the episode succeeded
-    side             [E]           +1 left / -1 right (the task's side), 0 if none
-    attrs["equibim"] metadata: format, version, task, env config, seed, counts, fields
+    attrs["equibim"] metadata: format, version, counts, fields, and the caller's ``Demos.meta``
+                     (task, env config, seed, a task's per-episode info, ...)
 
-Writing goes to a temporary sibling directory that is renamed into place, so a crash never
-leaves a half-written dataset where a good one was.
+Format versions: 2 (this code). Version 1 also stored a per-episode ``side`` array;
+:func:`load` rejects it (regenerate such a dataset with ``equibim generate``).
+
+Writing goes to a temporary sibling directory that is complete (and fsynced) before it is
+moved into place, so a crash never leaves a half-written dataset where a good one was. A new
+dataset is renamed into place. An existing one is replaced, on Linux, by atomically
+exchanging the two directories (``renameat2(RENAME_EXCHANGE)``), so a dataset is under the
+final name at every moment; where that is unavailable (other systems, glibc < 2.28, a
+filesystem without the flag) it falls back to two renames, old away then new in, which
+leaves a short gap with no dataset under the final name.
 """
 
 from __future__ import annotations
 
+import ctypes
 import dataclasses
+import errno
+import functools
 import json
 import os
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 from typing import Mapping
@@ -27,7 +39,7 @@ import numpy as np
 import zarr
 
 FORMAT = "equibim-demos"
-VERSION = 1
+VERSION = 2
 
 
 class DatasetError(ValueError):
@@ -43,15 +55,13 @@ class Demos:
       action: [E, T, A].
       length: int32 [E], valid steps per episode.
       success: bool [E].
-      side: float32 [E].
-      meta: JSON-serialisable metadata (task, env config, seed, ...).
+      meta: JSON-serialisable metadata (task, env config, seed, a task's per-episode info, ...).
     """
 
     obs: Mapping[str, np.ndarray]
     action: np.ndarray
     length: np.ndarray
     success: np.ndarray
-    side: np.ndarray
     meta: Mapping
 
     def __post_init__(self):
@@ -81,7 +91,7 @@ def validate(d: Demos) -> None:
             raise DatasetError(f"obs/{k} contains NaN or inf")
     if not np.all(np.isfinite(d.action)):
         raise DatasetError("action contains NaN or inf")
-    for name, arr in (("length", d.length), ("success", d.success), ("side", d.side)):
+    for name, arr in (("length", d.length), ("success", d.success)):
         if arr.shape != (e,):
             raise DatasetError(f"{name} has shape {arr.shape}; expected ({e},)")
     if np.any(d.length < 1) or np.any(d.length > t):
@@ -92,8 +102,111 @@ def validate(d: Demos) -> None:
         raise DatasetError(f"metadata is not JSON-serialisable: {err}") from None
 
 
+_AT_FDCWD = -100
+_RENAME_EXCHANGE = 2
+
+
+@functools.lru_cache(maxsize=None)
+def _renameat2():
+    """libc's ``renameat2`` (ctypes function), or None where there is none (non-Linux, old libc)."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        fn = ctypes.CDLL(None, use_errno=True).renameat2
+    except (OSError, AttributeError):
+        return None
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    fn.restype = ctypes.c_int
+    return fn
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Atomically swap the directory entries ``a`` and ``b`` (both must exist).
+
+    Returns False, having changed nothing, where ``renameat2(RENAME_EXCHANGE)`` is
+    unavailable: no such libc function, or the kernel/filesystem answers ENOSYS or EINVAL.
+    Raises:
+      OSError: the exchange failed for another reason (errno and both paths in the message).
+    """
+    fn = _renameat2()
+    if fn is None:
+        return False
+    if fn(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.ENOSYS, errno.EINVAL):
+        return False
+    raise OSError(err, f"renameat2(RENAME_EXCHANGE) of {a} and {b} failed: {os.strerror(err)}")
+
+
+def _fsync_path(p: Path, directory: bool = False) -> None:
+    if directory and os.name != "posix":  # directories cannot be opened for fsync there
+        return
+    fd = os.open(p, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    except OSError as err:  # some filesystems cannot fsync a directory
+        if err.errno not in (errno.EINVAL, errno.EBADF, errno.ENOTSUP):
+            raise
+    finally:
+        os.close(fd)
+
+
+def _fsync_tree(root: Path) -> None:
+    """fsync every file and directory under ``root`` (files first), so renaming it is durable."""
+    for dirpath, _, files in os.walk(root, topdown=False):
+        for f in files:
+            _fsync_path(Path(dirpath, f))
+        _fsync_path(Path(dirpath), directory=True)
+
+
+def _remove(p: Path) -> None:
+    if p.is_dir() and not p.is_symlink():
+        shutil.rmtree(p)
+    else:
+        p.unlink()
+
+
+def _replace_with_gap(tmp: Path, path: Path) -> None:
+    """Fallback replace: move ``path`` away, then ``tmp`` in. Between the two renames no
+    dataset is at ``path``; if the second rename fails the old dataset is moved back."""
+    old = path.with_name(f".{path.name}.old")
+    if old.exists() or old.is_symlink():
+        _remove(old)
+    os.replace(path, old)
+    try:
+        os.replace(tmp, path)
+    except BaseException:
+        os.replace(old, path)
+        raise
+    _remove(old)
+
+
+def _write(demos: Demos, root: Path) -> None:
+    g = zarr.open_group(str(root), mode="w")
+    e = demos.n_episodes
+    for k, v in demos.obs.items():
+        g.create_array(f"obs/{k}", shape=v.shape, dtype=v.dtype, chunks=(1,) + v.shape[1:])[:] = v
+    g.create_array("action", shape=demos.action.shape, dtype=demos.action.dtype,
+                   chunks=(1,) + demos.action.shape[1:])[:] = demos.action
+    for name, arr in (("length", demos.length.astype(np.int32)), ("success", demos.success.astype(bool))):
+        g.create_array(name, shape=(e,), dtype=arr.dtype)[:] = arr
+    g.attrs["equibim"] = {
+        "format": FORMAT, "version": VERSION, "n_episodes": e, "n_steps": demos.n_steps,
+        "obs_fields": sorted(demos.obs), "action_dim": int(demos.action.shape[-1]),
+        "horizon": int(demos.action.shape[1]), **dict(demos.meta),
+    }
+
+
 def save(demos: Demos, path: str | os.PathLike, overwrite: bool = False) -> Path:
     """Write ``demos`` to ``path`` (a ``.zarr`` directory) atomically.
+
+    The dataset is written in full to a temporary sibling ``.NAME.*.tmp`` and fsynced, then
+    moved into place: renamed if ``path`` is new; if ``path`` exists (``overwrite=True``),
+    exchanged with it atomically on Linux and the old dataset (now at the temporary name)
+    deleted, or, where the exchange is unavailable, by two renames with a short gap (see the
+    module docstring). If anything fails before the new dataset is in place, the temporary
+    directory is removed and ``path`` keeps what it had.
 
     Raises:
       FileExistsError: ``path`` exists and ``overwrite`` is False.
@@ -104,31 +217,21 @@ def save(demos: Demos, path: str | os.PathLike, overwrite: bool = False) -> Path
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
     try:
-        g = zarr.open_group(str(tmp), mode="w")
-        e = demos.n_episodes
-        for k, v in demos.obs.items():
-            g.create_array(f"obs/{k}", shape=v.shape, dtype=v.dtype, chunks=(1,) + v.shape[1:])[:] = v
-        g.create_array("action", shape=demos.action.shape, dtype=demos.action.dtype,
-                       chunks=(1,) + demos.action.shape[1:])[:] = demos.action
-        for name, arr in (("length", demos.length.astype(np.int32)), ("success", demos.success.astype(bool)),
-                          ("side", demos.side.astype(np.float32))):
-            g.create_array(name, shape=(e,), dtype=arr.dtype)[:] = arr
-        g.attrs["equibim"] = {
-            "format": FORMAT, "version": VERSION, "n_episodes": e, "n_steps": demos.n_steps,
-            "obs_fields": sorted(demos.obs), "action_dim": int(demos.action.shape[-1]),
-            "horizon": int(demos.action.shape[1]), **dict(demos.meta),
-        }
-        if path.exists():
-            old = path.with_name(f".{path.name}.old")
-            if old.exists():
-                shutil.rmtree(old)
-            os.replace(path, old)
-            os.replace(tmp, path)
-            shutil.rmtree(old)
+        _write(demos, tmp)
+        _fsync_tree(tmp)
+        if path.exists() or path.is_symlink():
+            if _exchange(tmp, path):
+                _remove(tmp)  # the old dataset, now under the temporary name
+            else:
+                _replace_with_gap(tmp, path)
         else:
             os.replace(tmp, path)
+        _fsync_path(path.parent, directory=True)
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        if tmp.is_dir() and not tmp.is_symlink():
+            shutil.rmtree(tmp, ignore_errors=True)
+        elif tmp.exists() or tmp.is_symlink():
+            tmp.unlink()
         raise
     return path
 
@@ -152,14 +255,19 @@ def load(path: str | os.PathLike, expect: Mapping | None = None) -> Demos:
         raise DatasetError(f"{path} is not a readable zarr dataset: {err}") from None
     if meta.get("format") != FORMAT:
         raise DatasetError(f"{path} is not an {FORMAT} dataset (metadata: {meta or 'none'})")
-    if meta.get("version") != VERSION:
-        raise DatasetError(f"{path} has format version {meta.get('version')}; this code reads {VERSION}")
+    version = meta.get("version")
+    if version != VERSION:
+        if isinstance(version, int) and version < VERSION:
+            raise DatasetError(
+                f"{path} is an {FORMAT} dataset of format version {version}, older than the "
+                f"version {VERSION} this code reads; regenerate it with `equibim generate`"
+            )
+        raise DatasetError(f"{path} has format version {version!r}; this code reads version {VERSION}")
     try:
         obs = {k: np.asarray(g[f"obs/{k}"][:]) for k in meta["obs_fields"]}
         demos = Demos(
             obs=obs, action=np.asarray(g["action"][:]), length=np.asarray(g["length"][:]),
-            success=np.asarray(g["success"][:]), side=np.asarray(g["side"][:]),
-            meta={k: v for k, v in meta.items()},
+            success=np.asarray(g["success"][:]), meta={k: v for k, v in meta.items()},
         )
     except DatasetError as err:
         raise DatasetError(f"{path}: {err}") from None

@@ -6,16 +6,20 @@ One compiled ``jit(vmap(rollout))`` runs a chunk of episodes; Python only loops 
 
 from __future__ import annotations
 
+import math
 import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from equibim_jax.data.dataset import Demos
-from equibim_jax.experts import make_expert, make_rollout
+from equibim_jax.config import config_to_dict
+from equibim_jax.data.dataset import Demos, save
+from equibim_jax.experts import make_rollout
 from equibim_jax.sim.env import Env
+from equibim_jax.tasks import make_expert
 
 
 def generate_demos(
@@ -33,7 +37,8 @@ def generate_demos(
     """Roll out the task's scripted expert until ``n_episodes`` successes are collected.
 
     Args:
-      env: the task environment (its ``obs`` fields are recorded).
+      env: the task environment, built by ``equibim_jax.make_env`` (its ``obs`` fields
+        are recorded; its task name and options go into the metadata).
       key: PRNG key; episode ``i`` uses ``fold_in(key, i)``, so the result is a pure
         function of the key and the arguments.
       n_episodes: successful episodes to keep.
@@ -67,7 +72,6 @@ def generate_demos(
         tc = time.perf_counter()
         final, traj = roll(keys)
         traj = jax.device_get(traj)
-        side = np.asarray(jax.device_get(final.info.get("side", jnp.zeros(chunk))))
         if compile_s is None:
             compile_s = time.perf_counter() - tc
         attempts += chunk
@@ -81,7 +85,7 @@ def generate_demos(
             n = min(t_len, first + 1 + tail)
             kept.append({
                 "obs": {k: v[b] for k, v in traj["obs"].items()}, "action": traj["action"][b],
-                "length": n, "success": ok, "side": float(side[b]),
+                "length": n, "success": ok,
             })
             bar.update(1)
         bar.set_postfix(success_rate=f"{successes / attempts:.2f}")
@@ -98,21 +102,52 @@ def generate_demos(
         action=np.stack([k["action"][:horizon] for k in kept]).astype(np.float32),
         length=np.array([k["length"] for k in kept], np.int32),
         success=np.array([k["success"] for k in kept]),
-        side=np.array([k["side"] for k in kept], np.float32),
-        meta={
-            "task": getattr(env.scene, "name", "unknown"),
-            "robot": env.config.robot,
-            "obs": list(env.config.obs),
-            "action_mode": env.config.action,
-            "env_config": {k: (list(v) if isinstance(v, tuple) else v)
-                           for k, v in env.config.__dict__.items()},
-            "scene": {k: (list(v) if isinstance(v, tuple) else v)
-                      for k, v in getattr(env.scene, "__dict__", {}).items()
-                      if isinstance(v, (int, float, str, bool, tuple, list))},
-            **(meta or {}),
-        },
+        meta={"task": env.task, "task_options": config_to_dict(env.task_options), **(meta or {})},
     )
     wall = time.perf_counter() - t0
     stats = {"attempts": attempts, "successes": successes, "success_rate": successes / attempts,
              "wall_s": wall, "first_chunk_s_incl_compile": compile_s, "kept": len(kept)}
     return demos, stats
+
+
+def generate_dataset(env: Env, out: str | Path, n_episodes: int, seed: int = 0, chunk: int = 32,
+                     overwrite: bool = False, progress: bool = True) -> tuple[Demos, dict]:
+    """Generate ``n_episodes`` successful expert demos in ``env`` and save them (zarr).
+
+    Episodes run in equal batches of at most ``chunk`` (32 on the CPU: see
+    ``equibim_jax._batching``) that cover ``n_episodes`` (48 -> 2 x 24, not 2 x 32, since
+    the expert rarely fails and a padded last batch would mostly simulate spares). The
+    dataset at ``out`` is written atomically; an existing one is only replaced with
+    ``overwrite=True``. The metadata records the task, its resolved options and ``seed``,
+    so training and evaluation rebuild the same env.
+
+    Returns:
+      ``(demos, stats)`` as :func:`generate_demos`.
+    """
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise FileExistsError(f"{out} exists; pass overwrite=True (--overwrite) to replace it")
+    chunk = max(1, min(int(chunk), 32, int(n_episodes)))
+    chunk = math.ceil(int(n_episodes) / math.ceil(int(n_episodes) / chunk))
+    demos, stats = generate_demos(env, jax.random.key(seed), n_episodes, chunk=chunk,
+                                  progress=progress, meta={"seed": int(seed)})
+    save(demos, out, overwrite=overwrite)
+    return demos, stats
+
+
+def env_from_meta(meta: dict) -> Env:
+    """Rebuild the env a dataset was generated in, from its metadata (task and options).
+
+    Raises:
+      DatasetError: the metadata lack the task or its options.
+    """
+    from equibim_jax.data.dataset import DatasetError
+    from equibim_jax.tasks import make_env
+
+    if "task" not in meta or not isinstance(meta.get("task_options"), dict):
+        raise DatasetError("dataset metadata has no 'task' and 'task_options' (not written by "
+                           "equibim generate?)")
+    try:
+        return make_env(meta["task"], **meta["task_options"])
+    except ValueError as e:
+        raise DatasetError(f"dataset metadata do not describe a valid env: {e}") from None

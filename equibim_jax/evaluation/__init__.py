@@ -1,4 +1,4 @@
-"""Closed-loop evaluation: rollouts, success statistics, tables."""
+"""Closed-loop evaluation: rollouts, success statistics, open-loop checks."""
 
 from equibim_jax.evaluation.stats import paired_sign_test, wilson_interval
 

@@ -1,9 +1,10 @@
-"""Batched closed-loop evaluation of a diffusion policy in MJX, with action chunking.
+"""Batched closed-loop evaluation of any policy in MJX, with action chunking.
 
 Every ``Ta`` control steps the policy samples a ``[Tp, A]`` chunk from the last ``To``
-observations (DDIM in ``lax.scan``) and the env executes ``Ta`` of them; the whole episode
-is one ``lax.scan`` and episodes are ``vmap``-ed, so a batch of evaluations is one
-compiled call.
+observations and the env executes ``Ta`` of them; the whole episode is one ``lax.scan``
+and episodes are ``vmap``-ed, so a batch of evaluations is one compiled call. The mirrored
+side of an evaluation starts each episode from the mirror image (``env.mirror_state``) of
+the trained side's initial state, whatever the task.
 """
 
 from __future__ import annotations
@@ -18,42 +19,42 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from equibim_jax.evaluation.stats import wilson_interval
-from equibim_jax.policies.diffusion import predict_action
+from equibim_jax.policies.base import Policy, predict_action
 from equibim_jax.sim.env import Env
 
 
-def make_policy_rollout(env: Env, model, normalizer, length: int | None = None,
+def make_policy_rollout(env: Env, policy: Policy, normalizer, length: int | None = None,
                         mirror_noise: bool = False, record_qpos: bool = False,
                         observe_every_step: bool = False) -> Callable:
     """A pure ``rollout(params, key) -> dict`` of one closed-loop episode.
 
     Args:
       env: the task env (its observation fields must include the policy's inputs).
-      model: the ``NoisePredictor`` (its ``config`` is a ``PolicyConfig``).
+      policy: the :class:`~equibim_jax.policies.Policy`.
       normalizer: the policy's ``Normalizer`` (mirror-consistent: fitted with ``S``).
       length: control steps (default: the env's ``episode_length``).
-      mirror_noise: on the mirrored side, draw each chunk's DDIM noise ``z`` as on the
+      mirror_noise: on the mirrored side, draw each chunk's sampler noise ``z`` as on the
         trained side and use ``S_a z`` (a signed permutation of ``N(0, I)`` noise, so the
         same distribution). Episode ``i`` of the mirrored side is then the mirror image of
         episode ``i`` in all its randomness, and an exactly equivariant policy in
-        mirror-symmetric physics repeats it move for move. ``False`` (the default, and what
-        the README's tables use) gives the mirrored side ``z`` itself.
+        mirror-symmetric physics repeats it move for move. ``False`` (the default) gives
+        the mirrored side ``z`` itself.
       record_qpos: also return ``"qpos_t"``, ``[n_chunks * Ta, nq]`` after every step.
       observe_every_step: render the observations after every control step. By default
         only the last ``To`` steps of each chunk are observed (the policy reads nothing
         else; ``Env.step(observe=False)`` for the others): the same episode, cheaper with a
-        point cloud (32 episodes of the demo's policy, ``Ta = 8``, ``To = 2``: 10.0 s
-        against 13.0 s on 2 CPU cores, compile apart; ``benchmarks/rollout.py``).
+        rendered observation (``benchmarks/rollout.py`` measures it).
     Returns:
-      ``rollout(params, key, mirrored=False)`` -> ``{"success": [] bool (latched), "side": [],
-      "success_t": [n_chunks * Ta] bool, "final_qpos": [nq]}``. ``vmap`` over keys for a
+      ``rollout(params, key, mirrored=False)`` -> ``{"success": [] bool (latched),
+      "success_t": [n_chunks * Ta] bool, "nan_actions": [] int32 (steps whose action was
+      NaN or infinite, refused by the env), "final_qpos": [nq]}``. ``vmap`` over keys for a
       batch. ``mirrored`` (a bool, may be traced) starts the episode from
       ``env.mirror_state`` of the reset state instead: the same key then gives the exact
       mirror image of the initial state, so trained-side and mirrored-side evaluations can
       share one compiled function and be paired episode by episode.
     """
-    cfg = model.config
-    fields = tuple(cfg.encoder.keys)
+    cfg = policy.config
+    fields = tuple(cfg.obs_keys)
     missing = [f for f in fields if f not in env.config.obs]
     if missing:
         raise ValueError(f"the policy reads {missing}, which the env does not observe ({env.config.obs})")
@@ -77,7 +78,7 @@ def make_policy_rollout(env: Env, model, normalizer, length: int | None = None,
             s, hist = carry
             obs = {f: v[None] for f, v in hist.items()}
             noise_op = (lambda z: jnp.where(mirrored, s_a(z), z)) if mirror_noise else None
-            acts = predict_action(model, params, obs, jax.random.fold_in(k_pol, i), normalizer,
+            acts = predict_action(policy, params, obs, jax.random.fold_in(k_pol, i), normalizer,
                                   noise_op=noise_op)["action"][0]
 
             def step(carry, xs):
@@ -93,14 +94,15 @@ def make_policy_rollout(env: Env, model, normalizer, length: int | None = None,
                 # batched, so under vmap this stays a real branch: one copy of the renderer
                 # in the program, run on the steps that need it.
                 s, hist = jax.lax.cond(j >= n_blind, observe, lambda s, h: (s, h), s, hist)
-                return (s, hist), (s.info["success"], s.data.qpos if record_qpos else None)
+                return (s, hist), (s.info["success"], s.metrics["nan_action"],
+                                   s.data.qpos if record_qpos else None)
 
             (s, hist), out = jax.lax.scan(step, (s, hist), (acts, jnp.arange(ta)))
             return (s, hist), out
 
-        (s, _), (succ, qpos_t) = jax.lax.scan(chunk, (s, hist), jnp.arange(n_chunks))
-        out = {"success": s.info["success"], "side": s.info.get("side", jnp.zeros(())),
-               "success_t": succ.reshape(-1), "final_qpos": s.data.qpos}
+        (s, _), (succ, nan, qpos_t) = jax.lax.scan(chunk, (s, hist), jnp.arange(n_chunks))
+        out = {"success": s.info["success"], "success_t": succ.reshape(-1),
+               "nan_actions": jnp.sum(nan).astype(jnp.int32), "final_qpos": s.data.qpos}
         if record_qpos:
             out["qpos_t"] = qpos_t.reshape(-1, qpos_t.shape[-1])
         return out
@@ -152,15 +154,19 @@ def evaluate_sides(rollout: Callable, params: Any, key: jax.Array, n_episodes: i
 
     Returns:
       ``{side: {"success", "ci95", "episodes", "successes", "wall_s", "per_episode",
-      "first_success_step"}}``; ``first_success_step`` is -1 for failures.
+      "first_success_step", "nan_actions", "episodes_with_nan"}}``; ``first_success_step`` is
+      -1 for failures; ``nan_actions`` counts the steps whose action was not finite (the env
+      refuses them), summed over episodes.
     """
     outs, wall = _run_paired(_runner(rollout), params, key, n_episodes, chunk, sides,
-                             ("success", "success_t"), progress, desc)
+                             ("success", "success_t", "nan_actions"), progress, desc)
     res = {}
     for side in sides:
         succ, st = outs[side]["success"].astype(bool), outs[side]["success_t"]
+        nan = outs[side]["nan_actions"]
         res[side] = {**summarize(succ), "wall_s": wall / len(sides), "per_episode": succ.tolist(),
-                     "first_success_step": np.where(st.any(-1), st.argmax(-1), -1).astype(int).tolist()}
+                     "first_success_step": np.where(st.any(-1), st.argmax(-1), -1).astype(int).tolist(),
+                     "nan_actions": int(nan.sum()), "episodes_with_nan": int((nan > 0).sum())}
     return res
 
 
@@ -197,7 +203,7 @@ def _run_paired(run: Callable, params: Any, key: jax.Array, n_episodes: int, chu
             for j, side in enumerate(sides)}, wall
 
 
-def mirror_pair_gap(env: Env, model, normalizer, params: Any, key: jax.Array, n_episodes: int,
+def mirror_pair_gap(env: Env, policy: Policy, normalizer, params: Any, key: jax.Array, n_episodes: int,
                     chunk: int = 32, at_steps=(1, 8, 32, 128), progress: bool = False) -> dict:
     """How long the mirrored episodes stay the mirror images of the trained-side ones.
 
@@ -215,7 +221,7 @@ def mirror_pair_gap(env: Env, model, normalizer, params: Any, key: jax.Array, n_
       step), ``"gap_final": [per pair]``, and ``"both", "trained_only", "mirrored_only",
       "neither"`` pair counts.
     """
-    roll = make_policy_rollout(env, model, normalizer, mirror_noise=True, record_qpos=True)
+    roll = make_policy_rollout(env, policy, normalizer, mirror_noise=True, record_qpos=True)
     outs, _ = _run_paired(jax.jit(jax.vmap(roll, in_axes=(None, 0, 0))), params, key, n_episodes,
                           chunk, ("trained", "mirrored"), ("success", "qpos_t"), progress, "mirror pairs")
     q_back = np.asarray(jax.jit(jax.vmap(jax.vmap(env.sym.qpos)))(outs["mirrored"]["qpos_t"]))

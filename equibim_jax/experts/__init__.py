@@ -1,17 +1,17 @@
 """Scripted experts: pure-JAX state machines that produce demonstrations.
 
-Each expert is built by a factory ``make(env, config=...) -> Expert`` with
-``init(env_state) -> expert_state`` and ``act(expert_state, env_state) -> (expert_state,
-action [A])``, pure functions of one environment (``vmap`` them for batches).
-:func:`make_rollout` runs an expert in its env inside one ``lax.scan``.
+An expert is an :class:`Expert`: ``init(env_state) -> expert_state`` and
+``act(expert_state, env_state) -> (expert_state, action [A])``, pure functions of one
+environment (``vmap`` them for batches). Each task's registry entry names its expert;
+``equibim_jax.make_expert(env)`` builds it. :func:`make_rollout` runs an expert in its env
+inside one ``lax.scan``.
 
 Example::
 
-    from equibim_jax.tasks import make_env
-    from equibim_jax.experts import make_expert, make_rollout
-    env = make_env("place_empty_cup", side="both")
-    expert = make_expert(env)
-    roll = jax.jit(jax.vmap(make_rollout(env, expert, length=250)))
+    import equibim_jax as eb
+    from equibim_jax.experts import make_rollout
+    env = eb.make_env("place_empty_cup", side="both")
+    roll = jax.jit(jax.vmap(make_rollout(env, eb.make_expert(env), length=250)))
     final, traj = roll(jax.random.split(jax.random.key(0), 64))
 """
 
@@ -21,32 +21,17 @@ from typing import Callable
 
 import jax
 
-from equibim_jax.experts.place_empty_cup import CupExpertConfig, Expert
-from equibim_jax.experts.place_empty_cup import make_expert as _make_place_empty_cup
+from equibim_jax.experts.place_empty_cup import Expert
 from equibim_jax.sim.env import Env, State
 
-__all__ = ["EXPERTS", "Expert", "CupExpertConfig", "expert_names", "make_expert", "make_rollout"]
-
-EXPERTS: dict[str, Callable[..., Expert]] = {
-    "place_empty_cup": _make_place_empty_cup,
-}
-"""Task name -> expert factory ``(env, config=...) -> Expert``."""
-
-
-def expert_names() -> list[str]:
-    """Tasks that have a scripted expert, sorted."""
-    return sorted(EXPERTS)
+__all__ = ["Expert", "make_expert", "make_rollout"]
 
 
 def make_expert(env: Env, **kwargs) -> Expert:
-    """The scripted expert of ``env``'s task (looked up by ``env.scene.name``).
+    """The scripted expert of ``env``'s task (``equibim_jax.tasks.make_expert``)."""
+    from equibim_jax.tasks import make_expert as _make
 
-    Raises ValueError when the task has no expert (the message lists those that do).
-    """
-    name = getattr(env.scene, "name", None)
-    if name not in EXPERTS:
-        raise ValueError(f"no scripted expert for task {name!r}; experts exist for {expert_names()}")
-    return EXPERTS[name](env, **kwargs)
+    return _make(env, **kwargs)
 
 
 def make_rollout(env: Env, expert: Expert, length: int | None = None,

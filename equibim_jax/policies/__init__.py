@@ -1,48 +1,34 @@
-"""Policies: the diffusion policy (1D conditional U-Net) and observation encoders."""
+"""Policies behind one interface (:class:`Policy`) and a registry.
 
-from equibim_jax.policies.diffusion import (
-    DiffusionSchedule,
-    EmaConfig,
-    NoisePredictor,
-    PolicyApplyFn,
+``policy_names()`` lists the registered policies and ``make_policy(name, config)`` builds
+one. A new policy is one module (a :class:`PolicyConfig` subclass and a factory returning
+a :class:`Policy`) plus one :func:`register_policy` line below.
+"""
+
+from equibim_jax.policies.base import (
+    Policy,
     PolicyConfig,
-    add_noise,
-    ddim_loop,
-    ddim_timesteps,
-    ema_decay,
-    ema_update,
-    example_obs,
-    init_params,
-    make_schedule,
+    make_policy,
+    policy_config_class,
+    policy_names,
     predict_action,
-    sample_actions,
-    squared_cosine_betas,
+    register_policy,
 )
-from equibim_jax.policies.encoders import EncoderConfig, ObsEncoder, PointCloudEncoder, StateEncoder
-from equibim_jax.policies.unet1d import ConditionalUnet1D, Conv1d, UNetConfig, sinusoidal_embedding
+from equibim_jax.policies.dp3 import DP3Config, make_dp3
+from equibim_jax.policies.encoders import EncoderConfig
+from equibim_jax.policies.unet1d import UNetConfig
+
+register_policy("dp3", DP3Config, make_dp3)
 
 __all__ = [
-    "ConditionalUnet1D",
-    "Conv1d",
-    "DiffusionSchedule",
-    "EmaConfig",
+    "DP3Config",
     "EncoderConfig",
-    "NoisePredictor",
-    "ObsEncoder",
-    "PolicyApplyFn",
-    "PointCloudEncoder",
+    "Policy",
     "PolicyConfig",
-    "StateEncoder",
     "UNetConfig",
-    "add_noise",
-    "ddim_loop",
-    "ddim_timesteps",
-    "ema_decay",
-    "ema_update",
-    "example_obs",
-    "init_params",
-    "make_schedule",
+    "make_policy",
+    "policy_config_class",
+    "policy_names",
     "predict_action",
-    "sample_actions",
-    "sinusoidal_embedding",
+    "register_policy",
 ]

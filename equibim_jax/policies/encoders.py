@@ -30,7 +30,8 @@ class EncoderConfig:
       pc_key: field of ``[B, To, N, 3]`` point clouds, or ``None`` for state only.
       state_hidden: hidden widths of the state MLP.
       state_out: state feature width per frame.
-      pc_hidden: hidden widths of the per-point MLP (DP3: ``(64, 128, 256)``).
+      pc_hidden: hidden widths of the per-point MLP (DP3 itself uses ``(64, 128, 256)``;
+        half of that is the CPU-sized default).
       pc_out: point-cloud feature width per frame after max-pool and projection.
     """
 
@@ -38,7 +39,7 @@ class EncoderConfig:
     pc_key: str | None = "point_cloud"
     state_hidden: tuple[int, ...] = (64,)
     state_out: int = 64
-    pc_hidden: tuple[int, ...] = (64, 128, 256)
+    pc_hidden: tuple[int, ...] = (32, 64, 128)
     pc_out: int = 64
 
     def __post_init__(self):

@@ -29,7 +29,8 @@ class UNetConfig:
     """Shape of the conditional U-Net.
 
     Attributes:
-      down_dims: channel widths per level, e.g. ``(64, 128, 256)``; the sequence is
+      down_dims: channel widths per level (Diffusion Policy uses ``(256, 512, 1024)``; the
+        default is CPU-sized); the sequence is
         halved between consecutive levels, so the horizon must be divisible by
         ``2 ** (len(down_dims) - 1)``.
       kernel_size: odd temporal kernel of the residual blocks (5 in the paper setup).
@@ -38,7 +39,7 @@ class UNetConfig:
       conv_impl: ``"im2col"`` (fast on CPU) or ``"xla"`` (``lax.conv_general_dilated``).
     """
 
-    down_dims: tuple[int, ...] = (64, 128, 256)
+    down_dims: tuple[int, ...] = (32, 64, 128)
     kernel_size: int = 5
     n_groups: int = 8
     step_embed_dim: int = 128

@@ -312,6 +312,14 @@ class Env:
         act_sym = joint if self.config.action == "joint" else ee
         return obs_sym, act_sym
 
+    def symmetry_ops(self, fields: tuple[str, ...], action_key: str = "action") -> dict:
+        """``S`` in raw units as ``{field: op}`` for the observation ``fields`` and the action
+        (under ``action_key``); each op acts on trailing axes."""
+        missing = [f for f in fields if f not in self.obs_symmetry.ops]
+        if missing:
+            raise ValueError(f"the env does not observe {missing} (it observes {self.config.obs})")
+        return {**{f: self.obs_symmetry.ops[f] for f in fields}, action_key: self.action_symmetry}
+
     def _point_cloud_crop(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
         """The point-cloud crop box, checked to be its own mirror image."""
         crop = self.config.crop or self.scene.point_cloud_crop

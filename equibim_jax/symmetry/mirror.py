@@ -13,6 +13,7 @@ accepts any number of leading batch dimensions, and is an involution (``S(S(x)) 
 | quaternion ``q`` (w, x, y, z)         | ``-(0, n) * q * (0, l)``         |
 | image                                 | horizontal flip                  |
 | point cloud                           | each point as a position         |
+| point cloud in a camera frame         | ``T_cam^-1 reflect(T_cam p)``    |
 """
 
 from __future__ import annotations
@@ -272,24 +273,43 @@ def reflect_point_cloud(mirror: Mirror, points: Array) -> Array:
     return jnp.concatenate([xyz, points[..., 3:]], axis=-1) if points.shape[-1] > 3 else xyz
 
 
-def reflect_point_cloud_camera(points: Array, t_cam: Array, axis: int = 0) -> Array:
-    """Reflection done in a camera frame: ``T_cam^-1 R T_cam p``.
+def reflect_point_cloud_camera(mirror: Mirror, points: Array, t_cam: Array) -> Array:
+    """Camera-frame point cloud: the world mirror expressed in the camera frame.
+
+    With ``T_cam`` the camera-to-world transform (rotation ``R``, camera position ``c``),
+    each point ``p`` given in the camera frame is taken to the world, reflected about the
+    mirror plane, and taken back::
+
+        S_cam(p) = T_cam^-1 reflect(mirror, T_cam p)
+                 = R^T M R p - 2 (n . (c - p0)) R^T n
+
+    (``M = I - 2 n n^T``, plane through ``p0``). This is right for any camera pose. For a
+    camera on the plane (``n . (c - p0) = 0``) whose x axis is normal to it (``R^T n =
+    +-e_x``) it reduces to negating the camera-frame x coordinate, ``diag(-1, 1, 1) p``.
+    An involution, like every operator here.
 
     Args:
-      points: [..., N, 3] (extra trailing channels after 3 are kept).
-      t_cam: [4, 4] transform from the robot/world frame into the camera frame.
-      axis: the camera-frame axis normal to the mirror plane (0: the image's horizontal axis).
+      mirror: the reflection plane (world frame).
+      points: [..., N, 3] in the camera frame; extra trailing channels after the first 3
+        (e.g. colour) are kept as they are.
+      t_cam: [4, 4] or [..., 4, 4] camera-to-world transform (a rigid transform); leading
+        dims broadcast against those of ``points`` before ``N``.
     Returns:
-      [..., N, 3+]. For a camera on the plane whose ``axis`` is normal to it, this equals
-      :func:`reflect_point_cloud` with that plane.
+      [..., N, 3+], in the camera frame.
     """
     points = _float(points)
     t = jnp.asarray(t_cam, points.dtype)
-    r = jnp.asarray(axis_reflection(axis), points.dtype)
-    rot, trans = t[:3, :3], t[:3, 3]
-    cam = points[..., :3] @ rot.T + trans
-    cam = cam @ r.T
-    xyz = (cam - trans) @ rot  # inverse of a rigid transform
-    return jnp.concatenate([xyz, points[..., 3:]], axis=-1) if points.shape[-1] > 3 else xyz
-
-
+    if t.ndim < 2 or t.shape[-2:] != (4, 4):
+        raise ValueError(f"t_cam must be a [..., 4, 4] camera-to-world transform, got shape {t.shape}")
+    rot, cam_pos = t[..., :3, :3], t[..., :3, 3]
+    n = jnp.asarray(mirror.normal, points.dtype)
+    p0 = jnp.asarray(mirror.point, points.dtype)
+    n_cam = jnp.einsum("...ji,j->...i", rot, n)  # R^T n: the normal in the camera frame
+    lin = jnp.eye(3, dtype=points.dtype) - 2.0 * n_cam[..., :, None] * n_cam[..., None, :]
+    dist = jnp.sum((cam_pos - p0) * n, axis=-1)  # signed distance of the camera to the plane
+    shift = -2.0 * dist[..., None] * n_cam  # [..., 3]
+    xyz = jnp.einsum("...ij,...nj->...ni", lin, points[..., :3]) + shift[..., None, :]
+    if points.shape[-1] == 3:
+        return xyz
+    rest = jnp.broadcast_to(points[..., 3:], xyz.shape[:-1] + (points.shape[-1] - 3,))
+    return jnp.concatenate([xyz, rest], axis=-1)

@@ -43,8 +43,9 @@ from mujoco import mjx
 from equibim_jax.sim import robots
 from equibim_jax.sim.env import Env, Scene
 from equibim_jax.sim.scenes import SIDES, side_sign
+from equibim_jax.tasks import TaskEntry
 
-__all__ = ["PlaceEmptyCup", "held_opening"]
+__all__ = ["PlaceEmptyCup", "held_opening", "TASK"]
 
 _BOX = mujoco.mjtGeom.mjGEOM_BOX
 
@@ -232,3 +233,12 @@ def held_opening(info: robots.RobotInfo, cup_width: float) -> float:
     closed_span = info.gripper_span - 2 * (info.gripper_open[0] - info.gripper_closed[0])
     return (cup_width - closed_span) / (info.gripper_span - closed_span)
 
+
+TASK = TaskEntry(
+    name="place_empty_cup",
+    scene=PlaceEmptyCup,
+    robot="robot_a",
+    step_limit=500,
+    expert="equibim_jax.experts.place_empty_cup:make_expert",
+    env_defaults={"obs": ("qpos", "point_cloud"), "action": "joint", "n_points": 64},
+)

@@ -1,63 +1,41 @@
-"""Training: losses (BC, L_sym), TrainState, the jitted step and loop, checkpoints."""
+"""Training: the optimiser and EMA, BC and ``L_sym`` losses of any policy, the jitted step
+and loop, checkpoints, and training runs (run folder, resume)."""
 
 from equibim_jax.training.checkpoint import (
     CheckpointError,
-    config_from_dict,
-    config_to_dict,
     latest_step,
+    read_checkpoint_config,
     restore_checkpoint,
     save_checkpoint,
 )
+from equibim_jax.training.ema import EmaConfig, ema_decay, ema_update
 from equibim_jax.training.losses import (
-    bc_loss,
-    concat_branches,
-    diffusion_loss,
-    field_op,
+    SYM_NORMS,
+    equivariance_error,
     mirror_batch,
+    policy_loss,
     sym_loss,
+    sym_residual_norm,
 )
+from equibim_jax.training.run import Run, TrainingDiverged, load_run, prepare_data, read_log, train
 from equibim_jax.training.train_step import (
     BoundTrainFn,
-    OnDeviceDataset,
     TrainConfig,
     TrainState,
     base_key,
     build_step_fn,
     create_train_state,
-    make_dataset,
     make_optimizer,
     make_train_loop,
     make_train_step,
-    sample_batch,
     sym_ramp,
-    window_indices,
 )
 
 __all__ = [
-    "BoundTrainFn",
-    "CheckpointError",
-    "OnDeviceDataset",
-    "TrainConfig",
-    "TrainState",
-    "base_key",
-    "bc_loss",
-    "build_step_fn",
-    "concat_branches",
-    "config_from_dict",
-    "config_to_dict",
-    "create_train_state",
-    "diffusion_loss",
-    "field_op",
-    "latest_step",
-    "make_dataset",
-    "make_optimizer",
-    "make_train_loop",
-    "make_train_step",
-    "mirror_batch",
-    "restore_checkpoint",
-    "sample_batch",
-    "save_checkpoint",
-    "sym_loss",
-    "sym_ramp",
-    "window_indices",
+    "BoundTrainFn", "CheckpointError", "EmaConfig", "Run", "SYM_NORMS", "TrainConfig", "TrainState",
+    "TrainingDiverged", "base_key", "build_step_fn", "create_train_state", "ema_decay", "ema_update",
+    "equivariance_error", "latest_step", "load_run", "make_optimizer", "make_train_loop",
+    "make_train_step", "mirror_batch", "policy_loss", "prepare_data", "read_checkpoint_config",
+    "read_log", "restore_checkpoint", "save_checkpoint", "sym_loss", "sym_ramp", "sym_residual_norm",
+    "train",
 ]

@@ -8,17 +8,14 @@ so a crash mid-write leaves no folder that looks like a finished step;
 :func:`latest_step` ignores the temporary folders.
 
 Only the array leaves of the state are stored (``step, params, ema_params,
-opt_state``); the static ``apply_fn`` and ``tx`` come from the template state the caller
-builds from the same config. Restoring into that template is exact (bitwise).
+opt_state``); the static ``policy`` and ``tx`` come from the template state the caller
+builds from the same config (:func:`read_checkpoint_config` reads it first). Restoring into that template is exact (bitwise).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
-import types
-import typing
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -28,14 +25,14 @@ import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 
+from equibim_jax.config import config_to_dict
 from equibim_jax.data.normalizer import Normalizer
 from equibim_jax.training.train_step import TrainState
 
 __all__ = [
     "CheckpointError",
-    "config_to_dict",
-    "config_from_dict",
     "save_checkpoint",
+    "read_checkpoint_config",
     "restore_checkpoint",
     "latest_step",
 ]
@@ -43,64 +40,6 @@ __all__ = [
 
 class CheckpointError(RuntimeError):
     """A checkpoint is missing, incomplete, corrupt, or does not match the expected config."""
-
-
-def config_to_dict(config: Any) -> Any:
-    """JSON-ready form of a (nested) frozen-dataclass config, or of a dict of them.
-
-    Tuples become lists; dataclasses become dicts (no class tags: rebuild with
-    :func:`config_from_dict` and the class you expect).
-    """
-    if dataclasses.is_dataclass(config) and not isinstance(config, type):
-        return {f.name: config_to_dict(getattr(config, f.name)) for f in dataclasses.fields(config)}
-    if isinstance(config, Mapping):
-        return {str(k): config_to_dict(v) for k, v in config.items()}
-    if isinstance(config, (list, tuple)):
-        return [config_to_dict(v) for v in config]
-    if config is None or isinstance(config, (bool, int, float, str)):
-        return config
-    raise TypeError(f"config value {config!r} of type {type(config).__name__} is not JSON-able")
-
-
-def config_from_dict(cls: type, data: Mapping[str, Any]) -> Any:
-    """Rebuild a frozen-dataclass config of type ``cls`` from :func:`config_to_dict` output.
-
-    Nested dataclass fields are rebuilt from their type annotations; lists become tuples
-    where the field is a tuple. Validation runs in each class's ``__post_init__``.
-
-    Raises:
-      ValueError: on unknown or missing fields.
-    """
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = set(data) - names
-    if unknown:
-        raise ValueError(f"{cls.__name__}: unknown config fields {sorted(unknown)}")
-    kwargs = {}
-    for name, value in data.items():
-        kwargs[name] = _from_json(hints[name], value)
-    try:
-        return cls(**kwargs)
-    except TypeError as e:
-        raise ValueError(f"{cls.__name__}: cannot rebuild from {sorted(data)}: {e}") from e
-
-
-def _from_json(tp: Any, value: Any) -> Any:
-    if value is None:
-        return None
-    if dataclasses.is_dataclass(tp):
-        return config_from_dict(tp, value)
-    origin = typing.get_origin(tp)
-    if origin in (typing.Union, types.UnionType):
-        for arg in typing.get_args(tp):
-            if arg is type(None):
-                continue
-            if dataclasses.is_dataclass(arg) and isinstance(value, Mapping):
-                return config_from_dict(arg, value)
-        return tuple(value) if isinstance(value, list) else value
-    if origin is tuple or tp is tuple:
-        return tuple(value)
-    return value
 
 
 def _diff(expected: Any, saved: Any, path: str = "") -> list[str]:
@@ -199,6 +138,35 @@ def save_checkpoint(
     return directory / str(step)
 
 
+def _resolve_step(directory: Path, step: int | None) -> tuple[int, Path]:
+    if step is None:
+        step = latest_step(directory)
+        if step is None:
+            raise FileNotFoundError(f"no completed checkpoint under {directory}")
+    path = directory / str(step)
+    if not path.is_dir():
+        raise FileNotFoundError(f"checkpoint {path} does not exist")
+    return step, path
+
+
+def read_checkpoint_config(directory: str | os.PathLike, step: int | None = None) -> dict[str, Any]:
+    """The JSON config saved with a checkpoint (latest completed one by default), read
+    without touching any array.
+
+    Raises:
+      FileNotFoundError: no such checkpoint. CheckpointError: unreadable config.
+    """
+    directory = Path(directory).absolute()
+    step, path = _resolve_step(directory, step)
+    mngr = _manager(directory)
+    try:
+        return mngr.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))["config"]
+    except Exception as e:  # orbax raises assorted types for broken files
+        raise CheckpointError(f"checkpoint {path}: cannot read its config ({e})") from e
+    finally:
+        mngr.close()
+
+
 def restore_checkpoint(
     directory: str | os.PathLike,
     template: TrainState,
@@ -212,7 +180,7 @@ def restore_checkpoint(
     Args:
       directory: checkpoint root.
       template: a state built from the same config (e.g. ``create_train_state``); its
-        tree structure, shapes, dtypes and static ``apply_fn``/``tx`` are used.
+        tree structure, shapes, dtypes and static ``policy``/``tx`` are used.
       expected_config: if given, the saved config must equal ``config_to_dict`` of it.
       step: which checkpoint; defaults to the latest completed one.
       ignore_config_keys: dotted config paths not compared (e.g. ``"train.total_steps"``).
@@ -224,13 +192,7 @@ def restore_checkpoint(
         shapes do not match.
     """
     directory = Path(directory).absolute()
-    if step is None:
-        step = latest_step(directory)
-        if step is None:
-            raise FileNotFoundError(f"no completed checkpoint under {directory}")
-    path = directory / str(step)
-    if not path.is_dir():
-        raise FileNotFoundError(f"checkpoint {path} does not exist")
+    step, path = _resolve_step(directory, step)
     mngr = _manager(directory)
     try:
         try:

@@ -1,20 +1,27 @@
-"""Losses for the diffusion policy: behaviour cloning (ε-MSE) and the symmetry loss.
+"""Losses of any :class:`~equibim_jax.policies.Policy`: behaviour cloning and ``L_sym``.
 
-All in normalised space. ``S`` is given per field: ``{field: op}`` (or an object with an
-``ops`` mapping, or a callable ``dict -> dict``), each op acting on trailing axes. The
-action op ``S_a`` must be *linear* in normalised space (a signed permutation, which a
-mirror-consistent normaliser guarantees): the mirrored branch uses the mirrored noise
-``S_a eps`` and relies on ``S_a add_noise(a0, eps, k) == add_noise(S_a a0, S_a eps, k)``.
+All in normalised space. ``S`` is given per field, ``{field: op}`` (or an object with an
+``ops`` mapping), with an op for the action field that is *linear* in normalised space (a
+signed permutation, which a mirror-consistent normaliser guarantees).
 
-``L_sym`` (EquiBim, for an ε-predictor): at the same ``k`` and with the same noise
-mirrored, ``eps(S_a a_k, k, S O) ≈ S_a eps(a_k, k, O)``. Both branches go through the
-network as one concatenated batch ``[2B, ...]``: one forward and one backward pass at
-twice the batch, which XLA runs more efficiently than two passes.
+``L_sym`` (EquiBim) compares the policy's prediction on mirrored inputs with the mirror of
+its prediction on the original inputs: for sample ``i`` the residual is
 
-Whether gradients should flow through the ``S_a eps(a_k, k, O)`` side (the "target") of
-``L_sym`` is a choice: by default both sides get gradients (the loss is symmetric in the
-two branches); ``stop_gradient=True`` treats the original branch as a fixed target, so
-``L_sym`` only pulls the mirrored prediction.
+    e_i = v(S x_i) - S v(x_i),    v = policy.sym_view(inputs, policy.apply(params, inputs)),
+
+with ``D`` elements per sample (``Tp * A`` for an action chunk) and ``N`` mirrored samples.
+The forms (:data:`SYM_NORMS`):
+
+* ``"mse"``: ``(1 / (N D)) sum_i ||e_i||^2``, the squared error. With ``stop_gradient`` and
+  ``lambda = 0.1`` this is the form of the paper's public code (ACT).
+* ``"rms"``: ``(1 / N) sum_i ||e_i||_2 / sqrt(D)``, each sample's root-mean-square
+  residual: on the scale of one element, so at the same ``lambda`` it weighs ``L_sym``
+  ``sqrt(D)`` times less than ``"l2"``.
+* ``"l2"``: ``(1 / N) sum_i ||e_i||_2``, the unsquared per-sample norm the paper writes
+  (it gives no ``lambda``).
+
+``stop_gradient`` treats ``S v(x)`` as a fixed target, so ``L_sym`` pulls only the mirrored
+prediction. Both branches go through the network as one concatenated batch ``[B + N]``.
 """
 
 from __future__ import annotations
@@ -25,213 +32,160 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from equibim_jax.policies.diffusion import DiffusionSchedule, add_noise
+from equibim_jax.policies.base import Policy, tree_concat, tree_take
 
 Array = Any
-ApplyFn = Callable[[Any, Array, Array, Mapping[str, Array]], Array]
 
-__all__ = ["field_op", "mirror_batch", "bc_loss", "sym_loss", "diffusion_loss", "concat_branches"]
+__all__ = ["SYM_NORMS", "as_ops", "mirror_batch", "sym_residual_norm", "both_branches",
+           "sym_loss", "policy_loss", "equivariance_error"]
+
+SYM_NORMS = ("mse", "rms", "l2")
 
 
-def field_op(symmetry: Any, name: str) -> Callable[[Array], Array]:
-    """The op of one field from a symmetry in any accepted form.
-
-    Args:
-      symmetry: ``{field: op}``, an object with an ``ops`` mapping (and optionally a
-        ``passthrough`` tuple of unchanged fields), or ``dict -> dict``.
-      name: field name.
-    Returns:
-      ``op: [..., D] -> [..., D]``.
-    Raises:
-      KeyError: if a mapping has no op for ``name``.
-    """
+def as_ops(symmetry: Any) -> Mapping[str, Callable[[Array], Array]]:
+    """``{field: op}`` from a mapping or an object with an ``ops`` mapping."""
     ops = getattr(symmetry, "ops", symmetry)
-    if name in getattr(symmetry, "passthrough", ()):
-        return lambda x: x
-    if isinstance(ops, Mapping):
-        if name not in ops:
-            raise KeyError(f"symmetry has no op for field {name!r}; it has {sorted(ops)}")
-        return ops[name]
-    if callable(symmetry):
-        return lambda x: symmetry({name: x})[name]
-    raise TypeError(f"unsupported symmetry type {type(symmetry).__name__}")
+    if not isinstance(ops, Mapping):
+        raise TypeError(f"a symmetry must be a mapping {{field: op}} or have .ops, got {type(symmetry).__name__}")
+    return ops
 
 
 def mirror_batch(symmetry: Any, batch: Mapping[str, Array], names=None) -> dict[str, Array]:
-    """Apply ``S`` field by field: ``{f: [B, ...]} -> {f: [B, ...]}`` for ``f`` in ``names``."""
-    names = list(batch) if names is None else list(names)
-    return {n: field_op(symmetry, n)(batch[n]) for n in names}
+    """Apply ``S`` field by field: ``{f: [B, ...]} -> {f: [B, ...]}`` for ``f`` in ``names``.
 
-
-def concat_branches(a: Mapping[str, Array], b: Mapping[str, Array]) -> dict[str, Array]:
-    """Stack two batches along axis 0: ``{f: [B, ...]}, {f: [B, ...]} -> {f: [2B, ...]}``."""
-    return {k: jnp.concatenate([a[k], b[k]], axis=0) for k in a}
-
-
-def bc_loss(eps_pred: Array, noise: Array) -> Array:
-    """ε-prediction MSE: ``mean((eps_pred - noise) ** 2)`` over ``[B, Tp, A]`` -> scalar."""
-    return jnp.mean(jnp.square(eps_pred - noise))
-
-
-SYM_NORMS = ("mse", "l2")
-SYM_SPACES = ("eps", "x0")
-
-
-def predict_x0(schedule: DiffusionSchedule, a_k: Array, eps: Array, k: Array,
-               clip: bool = True) -> Array:
-    """The clean action the noise prediction implies: ``(a_k - sqrt(1 - abar_k) eps) /
-    sqrt(abar_k)``, clipped to ``[-1, 1]`` as DDIM clips it (``clip``)."""
-    acp = schedule.alphas_cumprod[k].reshape((-1,) + (1,) * (a_k.ndim - 1))
-    x0 = (a_k - jnp.sqrt(1.0 - acp) * eps) / jnp.sqrt(acp)
-    return jnp.clip(x0, -1.0, 1.0) if clip else x0
-
-
-def _sym_term(eps_orig: Array, eps_mirr: Array, action_op, stop_gradient: bool,
-              norm: str = "mse") -> Array:
-    """The equivariance residual ``e = eps_mirr - S_a eps_orig`` reduced to a scalar.
-
-    ``norm="mse"``: ``mean(e ** 2)`` over all elements. ``norm="l2"``: the paper's
-    unsquared form, the mean over samples of ``||e_i||_2 / sqrt(D)`` (``D = Tp * A``
-    elements per sample, so both forms are on the scale of one element). Its gradient does
-    not shrink with the residual, so it keeps pulling where MSE has gone flat.
+    Raises:
+      KeyError: ``S`` has no op for one of the fields.
     """
+    ops = as_ops(symmetry)
+    names = list(batch) if names is None else list(names)
+    missing = [n for n in names if n not in ops]
+    if missing:
+        raise KeyError(f"symmetry has no op for field(s) {missing}; it has {sorted(ops)}")
+    return {n: ops[n](batch[n]) for n in names}
+
+
+def sym_residual_norm(e: Array, norm: str) -> Array:
+    """Reduce the residual ``e [N, ...]`` to a scalar in the form ``norm`` (module docstring)."""
     if norm not in SYM_NORMS:
         raise ValueError(f"sym norm must be one of {SYM_NORMS}, got {norm!r}")
-    target = action_op(eps_orig)
-    if stop_gradient:
-        target = jax.lax.stop_gradient(target)
-    e = eps_mirr - target
     if norm == "mse":
         return jnp.mean(jnp.square(e))
     e = e.reshape(e.shape[0], -1)
-    # sqrt(x + tiny): finite gradient at an exactly equivariant prediction (e == 0).
-    return jnp.mean(jnp.sqrt(jnp.mean(jnp.square(e), axis=-1) + 1e-12))
+    sq = jnp.sum(jnp.square(e), axis=-1)
+    if norm == "rms":
+        sq = sq / e.shape[1]
+    # sqrt(x + tiny): a finite gradient at an exactly equivariant prediction (e == 0).
+    return jnp.mean(jnp.sqrt(sq + 1e-12))
 
 
-def _both_branches(apply_fn: ApplyFn, params: Any, a_k: Array, k: Array,
-                   obs: Mapping[str, Array], symmetry: Any, s_a, n: int | None = None):
-    """One network pass over ``[B + n]``: the ``B`` originals, then the first ``n`` mirrored
-    (``n = B`` by default). Returns ``(eps_orig [B, ...], eps_mirr [n, ...])``."""
-    b = a_k.shape[0]
-    n = b if n is None else n
-    x = jnp.concatenate([a_k, s_a(a_k[:n])], axis=0)
-    o = concat_branches(obs, mirror_batch(symmetry, {f: v[:n] for f, v in obs.items()}))
-    eps = apply_fn(params, x, jnp.concatenate([k, k[:n]], axis=0), o)
-    return eps[:b], eps[b:]
+def both_branches(policy: Policy, params: Any, inputs: Mapping[str, Any], sym: Any,
+                  n: int | None = None) -> tuple[Any, Any, Any]:
+    """One network pass over ``[B + n]``: the ``B`` inputs, then the first ``n`` mirrored.
+
+    Returns:
+      ``(pred [B, ...], mirrored inputs [n, ...], pred_m [n, ...])``.
+    """
+    b = jax.tree.leaves(inputs)[0].shape[0]
+    n = b if n is None else int(n)
+    if not 1 <= n <= b:
+        raise ValueError(f"the mirrored branch needs 1 <= n <= B={b}, got {n}")
+    m_inputs = policy.mirror_inputs(as_ops(sym), tree_take(inputs, n))
+    pred = policy.apply(params, tree_concat(inputs, m_inputs))
+    return tree_take(pred, b), m_inputs, jax.tree.map(lambda x: x[b:], pred)
 
 
-def sym_loss(
-    apply_fn: ApplyFn,
-    params: Any,
-    noisy_actions: Array,
-    k: Array,
-    obs: Mapping[str, Array],
-    symmetry: Any,
-    *,
-    action_key: str = "action",
-    stop_gradient: bool = False,
-    norm: str = "mse",
-) -> Array:
-    """``L_sym = mean || eps(S_a a_k, k, S O) - S_a eps(a_k, k, O) ||^2`` (standalone).
+def _sym_term(policy: Policy, sym: Any, inputs, pred, m_inputs, pred_m, n: int,
+              stop_gradient: bool, norm: str) -> Array:
+    target = policy.mirror_view(as_ops(sym), policy.sym_view(tree_take(inputs, n), tree_take(pred, n)))
+    if stop_gradient:
+        target = jax.lax.stop_gradient(target)
+    return sym_residual_norm(policy.sym_view(m_inputs, pred_m) - target, norm)
+
+
+def sym_loss(policy: Policy, params: Any, batch: Mapping[str, Array], key: Array, sym: Any, *,
+             stop_gradient: bool = False, norm: str = "mse") -> Array:
+    """``L_sym`` alone on one batch (module docstring), all samples mirrored.
 
     Args:
-      apply_fn: ``(params, noisy_actions [B, Tp, A], k [B], obs) -> eps [B, Tp, A]``.
-      params: network parameters.
-      noisy_actions: ``[B, Tp, A]`` normalised noisy actions ``a_k``.
-      k: ``[B]`` int diffusion steps.
-      obs: ``{field: [B, To, ...]}`` normalised observations; every field is mirrored.
-      symmetry: normalised-space ``S`` with an op for ``action_key`` and each obs field.
-      action_key: name of the action op.
-      stop_gradient: stop gradients through ``S_a eps(a_k, k, O)``.
-      norm: ``"mse"`` (squared, mean over elements) or ``"l2"`` (unsquared per-sample
-        norm, as the paper writes ``L_sym``); see :func:`_sym_term`.
+      policy: the policy. params: its parameters.
+      batch: ``{action_key: [B, Tp, A], obs fields: [B, To, ...]}`` normalised.
+      key: PRNG key for ``policy.prepare``.
+      sym: normalised-space ``S`` with an op for the action and each observation field.
     Returns:
-      scalar (for ``"mse"`` the mean over ``B * Tp * A`` elements).
+      scalar.
     """
-    s_a = field_op(symmetry, action_key)
-    eps_orig, eps_mirr = _both_branches(apply_fn, params, noisy_actions, k, obs, symmetry, s_a)
-    return _sym_term(eps_orig, eps_mirr, s_a, stop_gradient, norm)
+    inputs, _ = policy.prepare(batch, key)
+    pred, m_inputs, pred_m = both_branches(policy, params, inputs, sym)
+    b = jax.tree.leaves(inputs)[0].shape[0]
+    return _sym_term(policy, sym, inputs, pred, m_inputs, pred_m, b, stop_gradient, norm)
 
 
-def diffusion_loss(
-    apply_fn: ApplyFn,
+def policy_loss(
+    policy: Policy,
     params: Any,
     batch: Mapping[str, Array],
     key: Array,
-    schedule: DiffusionSchedule,
-    symmetry: Any = None,
+    sym: Any = None,
     *,
     sym_weight: float = 0.0,
-    stop_gradient: bool = False,
-    mirror_augment: bool = False,
-    action_key: str = "action",
-    sym_norm: str = "mse",
     sym_scale: Array | float = 1.0,
+    stop_gradient: bool = False,
+    norm: str = "mse",
     sym_batch: int | None = None,
-    sym_space: str = "eps",
+    mirror_augment: bool = False,
 ) -> tuple[Array, dict[str, Array]]:
-    """Total loss ``bc + sym_scale * sym_weight * sym`` on one batch, with named terms.
+    """Total loss ``bc + sym_scale * sym_weight * L_sym`` on one batch, with named terms.
 
     The mirrored branch runs (in the same concatenated batch) when ``sym_weight > 0`` or
-    ``mirror_augment``; otherwise only the original batch goes through the network and
-    ``sym`` is reported as 0.
+    ``mirror_augment``; otherwise only the batch goes through the network and ``sym`` is
+    reported as 0.
 
     Args:
-      apply_fn: ``(params, [N, Tp, A], [N], obs) -> [N, Tp, A]``.
-      params: network parameters.
+      policy: the policy. params: its parameters.
       batch: ``{action_key: [B, Tp, A], obs fields: [B, To, ...]}`` normalised.
-      key: PRNG key for the noise and the diffusion steps.
-      schedule: DDPM schedule (``K`` steps).
-      symmetry: normalised-space ``S`` (needed if the mirrored branch runs).
-      sym_weight: ``lambda``, weight of ``L_sym``; a Python float (it decides statically
-        whether the mirrored branch is built).
-      stop_gradient: see :func:`sym_loss`.
-      mirror_augment: also add BC on the mirrored branch (mirror data augmentation);
-        ``bc`` is then the mean over both branches.
-      action_key: name of the action field.
-      sym_norm: ``"mse"`` or ``"l2"`` (see :func:`_sym_term`).
-      sym_scale: multiplier of ``sym_weight``; may be traced (a warm-up schedule).
-      sym_batch: how many samples of the batch (the first ``sym_batch``; batches are drawn
-        at random) also go through the mirrored branch; ``None``: all ``B``. ``L_sym`` (and
-        the mirrored BC term of ``mirror_augment``) is then the mean over those samples, an
-        unbiased estimate of the same expectation for ``1 + sym_batch / B`` of the
-        network cost instead of 2x. BC always uses all ``B`` samples.
-      sym_space: ``"eps"`` compares the noise predictions (DESIGN.md's form); ``"x0"``
-        compares the clean actions they imply (:func:`predict_x0`, clipped as in DDIM),
-        the policy's action output at step ``k``. For unclipped elements the ``x0``
-        residual is the ``eps`` residual times ``sqrt((1 - abar_k) / abar_k)``, so it
-        weights the high-noise steps, where DDIM decides the coarse action, far more.
+      key: PRNG key for ``policy.prepare``.
+      sym: normalised-space ``S`` (needed when the mirrored branch runs).
+      sym_weight: ``lambda``; a Python float (it decides statically whether the mirrored
+        branch is built).
+      sym_scale: multiplier of ``sym_weight``; may be traced (a ramp).
+      stop_gradient: ``S v(x)`` is a fixed target.
+      norm: form of ``L_sym``, one of :data:`SYM_NORMS`.
+      sym_batch: how many samples (the first ones; batches are drawn at random) also go
+        through the mirrored branch; ``None``: all ``B``. ``L_sym`` and the mirrored BC term
+        are then means over those samples; BC always uses all ``B``.
+      mirror_augment: also fit the mirrored samples by BC (mirror data augmentation);
+        ``bc`` is then the mean of the two branches' BC losses.
     Returns:
-      ``(total, {"bc", "sym", "total"})``, all scalars.
+      ``(total, {"bc", "sym", "total"})``, scalars.
     """
-    k_noise, k_step = jax.random.split(key)
-    a0 = batch[action_key]
-    obs = {f: v for f, v in batch.items() if f != action_key}
-    b = a0.shape[0]
-    noise = jax.random.normal(k_noise, a0.shape, a0.dtype)
-    k = jax.random.randint(k_step, (b,), 0, schedule.alphas_cumprod.shape[0])
-    a_k = add_noise(schedule, a0, noise, k)
+    inputs, targets = policy.prepare(batch, key)
     if not (mirror_augment or sym_weight > 0):
-        bc = bc_loss(apply_fn(params, a_k, k, obs), noise)
+        bc = policy.bc_loss(policy.apply(params, inputs), targets)
         return bc, {"bc": bc, "sym": jnp.zeros_like(bc), "total": bc}
-    if symmetry is None:
-        raise ValueError("diffusion_loss: sym_weight > 0 or mirror_augment needs a symmetry")
+    if sym is None:
+        raise ValueError("policy_loss: sym_weight > 0 or mirror_augment needs a symmetry")
+    b = jax.tree.leaves(inputs)[0].shape[0]
     n = b if sym_batch is None else int(sym_batch)
-    if not 1 <= n <= b:
-        raise ValueError(f"diffusion_loss: sym_batch must be in [1, B={b}], got {sym_batch}")
-    s_a = field_op(symmetry, action_key)
-    # Same k, same noise mirrored: S_a a_k == add_noise(S_a a0, S_a noise, k) as S_a is linear.
-    eps_orig, eps_mirr = _both_branches(apply_fn, params, a_k, k, obs, symmetry, s_a, n)
-    bc = bc_loss(eps_orig, noise)
+    pred, m_inputs, pred_m = both_branches(policy, params, inputs, sym, n)
+    bc = policy.bc_loss(pred, targets)
     if mirror_augment:
-        bc = 0.5 * (bc + bc_loss(eps_mirr, s_a(noise[:n])))
-    if sym_space not in SYM_SPACES:
-        raise ValueError(f"sym space must be one of {SYM_SPACES}, got {sym_space!r}")
-    if sym_space == "x0":
-        # S_a is a signed permutation in normalised space: it commutes with the clip.
-        sym = _sym_term(predict_x0(schedule, a_k[:n], eps_orig[:n], k[:n]),
-                        predict_x0(schedule, s_a(a_k[:n]), eps_mirr, k[:n]), s_a, stop_gradient, sym_norm)
-    else:
-        sym = _sym_term(eps_orig[:n], eps_mirr, s_a, stop_gradient, sym_norm)
-    total = bc + (sym_scale * sym_weight) * sym
-    return total, {"bc": bc, "sym": sym, "total": total}
+        m_targets = policy.mirror_targets(as_ops(sym), tree_take(targets, n))
+        bc = 0.5 * (bc + policy.bc_loss(pred_m, m_targets))
+    sym_term = _sym_term(policy, sym, inputs, pred, m_inputs, pred_m, n, stop_gradient, norm)
+    total = bc + (sym_scale * sym_weight) * sym_term
+    return total, {"bc": bc, "sym": sym_term, "total": total}
+
+
+def equivariance_error(policy: Policy, params: Any, batch: Mapping[str, Array], key: Array,
+                       sym: Any) -> Array:
+    """Relative equivariance error of what ``L_sym`` compares, on one batch:
+    ``sum ||v(S x) - S v(x)||^2 / sum ||v(x)||^2``.
+
+    0 for an exactly equivariant policy; about 2 for unrelated predictions of equal size.
+    Fix ``batch`` and ``key`` to track it over training.
+    """
+    inputs, _ = policy.prepare(batch, key)
+    pred, m_inputs, pred_m = both_branches(policy, params, inputs, sym)
+    v = policy.sym_view(inputs, pred)
+    e = policy.sym_view(m_inputs, pred_m) - policy.mirror_view(as_ops(sym), v)
+    return jnp.sum(jnp.square(e)) / jnp.sum(jnp.square(v))

@@ -1,0 +1,240 @@
+"""A training run on a dataset: run folder, config.json, progress, logs, checkpoints, resume.
+
+A run folder holds ``config.json`` (the resolved task, policy and train configs),
+``train.jsonl`` (one JSON row per dispatch of ``steps_per_dispatch`` steps) and ``ckpt/``
+(orbax checkpoints). Training resumes exactly from the last checkpoint of the folder.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import warnings
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import numpy as np
+from tqdm.auto import tqdm
+
+from equibim_jax._io import atomic_write_bytes
+from equibim_jax.config import TaskConfig, config_from_dict, save_config
+from equibim_jax.data.dataset import Demos, load
+from equibim_jax.data.generate import env_from_meta
+from equibim_jax.data.normalizer import Normalizer, fit_normalizer, normalized_symmetry
+from equibim_jax.data.windows import OnDeviceDataset, frames_from_demos, make_dataset, sample_batch
+from equibim_jax.policies.base import Policy, PolicyConfig, make_policy
+from equibim_jax.sim.env import Env
+from equibim_jax.training.checkpoint import (
+    CheckpointError,
+    latest_step,
+    read_checkpoint_config,
+    restore_checkpoint,
+    save_checkpoint,
+)
+from equibim_jax.training.losses import equivariance_error
+from equibim_jax.training.train_step import TrainConfig, TrainState, base_key, create_train_state, make_train_loop
+
+__all__ = ["TrainingDiverged", "Run", "prepare_data", "train", "load_run", "read_log"]
+
+
+class TrainingDiverged(RuntimeError):
+    """The loss became NaN or infinite; the last good state was kept as a checkpoint."""
+
+
+class Run(NamedTuple):
+    """A trained run, loaded: ``policy``, ``state`` (EMA parameters in ``state.ema_params``),
+    ``normalizer`` and ``config`` (``{"task": TaskConfig, "policy": ..., "train": TrainConfig}``)."""
+
+    policy: Policy
+    state: TrainState
+    normalizer: Normalizer
+    config: dict
+
+    def make_env(self) -> Env:
+        """The env of the run's task and options."""
+        return self.config["task"].make_env()
+
+
+class Data(NamedTuple):
+    """A dataset prepared for one policy: resolved ``policy_config``, ``normalizer``,
+    normalised-space ``sym`` and the on-device ``dataset``."""
+
+    policy_config: PolicyConfig
+    normalizer: Normalizer
+    sym: dict
+    dataset: OnDeviceDataset
+
+
+def prepare_data(demos: Demos, env: Env, policy_config: PolicyConfig,
+                 normalizer: Normalizer | None = None) -> Data:
+    """Frames of the fields the policy reads, the mirror-consistent normaliser (fitted on
+    the frames and their mirror images unless given), ``S`` in normalised space, the
+    policy config with the data's dims, and the on-device windows."""
+    fields = tuple(policy_config.obs_keys)
+    frames, ends = frames_from_demos(demos, fields)
+    sym_raw = env.symmetry_ops(fields, policy_config.action_key)
+    if policy_config.action_key != "action":
+        frames[policy_config.action_key] = frames.pop("action")
+    normalizer = normalizer if normalizer is not None else fit_normalizer(frames, sym_raw)
+    cfg = policy_config.with_data(frames[policy_config.action_key].shape[-1],
+                                  {f: frames[f].shape[-1] for f in fields})
+    dataset = make_dataset(normalizer.normalize(frames), ends, cfg)
+    return Data(cfg, normalizer, normalized_symmetry(sym_raw, normalizer), dataset)
+
+
+def read_log(path: str | Path) -> list[dict]:
+    """The rows of a ``train.jsonl``; a torn (half-written) line is skipped with a warning."""
+    rows = []
+    for i, line in enumerate(Path(path).read_text().splitlines()):
+        if not line.strip():
+            continue
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            warnings.warn(f"{path}: skipping unreadable line {i + 1} (a write cut short?)", stacklevel=2)
+    return rows
+
+
+def _same_normalizer(a: Normalizer, b: Normalizer) -> bool:
+    da, db = a.to_state_dict(), b.to_state_dict()
+    if jax.tree.structure(da) != jax.tree.structure(db):
+        return False
+    return all(np.array_equal(np.asarray(x), np.asarray(y))
+               for x, y in zip(jax.tree.leaves(da), jax.tree.leaves(db)))
+
+
+def _probe(policy: Policy, dataset: OnDeviceDataset, sym: dict, n: int = 64):
+    """``probe(params) -> relative equivariance error`` on a fixed batch and fixed noise."""
+    key = jax.random.key(12345)
+    batch = sample_batch(dataset, key, n)
+    return jax.jit(lambda p: equivariance_error(policy, p, batch, jax.random.fold_in(key, 1), sym))
+
+
+def train(
+    data: str | Path | Demos,
+    out_dir: str | Path,
+    policy_config: PolicyConfig,
+    train_config: TrainConfig = TrainConfig(),
+    *,
+    env: Env | None = None,
+    normalizer: Normalizer | None = None,
+    checkpoint_every: int | None = None,
+    progress: bool = True,
+    desc: str = "train",
+) -> dict:
+    """Train a policy on a dataset; resumes from ``out_dir`` if it holds a checkpoint.
+
+    Args:
+      data: a dataset path (``equibim generate``) or loaded :class:`Demos`.
+      out_dir: the run folder (module docstring).
+      policy_config: the policy's config (dims are taken from the data).
+      train_config: settings; ``total_steps`` is the run's length.
+      env: the dataset's env, if already built (else rebuilt from the dataset metadata).
+      normalizer: use this normaliser instead of fitting one (so two runs share it).
+      checkpoint_every: steps between checkpoints (default: only at the end).
+    Returns:
+      a summary: steps, timings, the last log row, paths.
+    Raises:
+      TrainingDiverged: the loss became non-finite; training stops, and the state before
+        the failing dispatch is saved as a checkpoint (unless one of that step exists).
+      CheckpointError: ``out_dir`` holds a checkpoint of a different config or normaliser.
+    """
+    demos = load(data) if not isinstance(data, Demos) else data
+    env = env if env is not None else env_from_meta(dict(demos.meta))
+    prep = prepare_data(demos, env, policy_config, normalizer)
+    policy = make_policy(prep.policy_config.name, prep.policy_config)
+    tc = train_config
+    config = {"task": TaskConfig(env.task, env.task_options), "policy": prep.policy_config, "train": tc}
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt = out / "ckpt"
+    state = create_train_state(policy, tc)
+    start = 0
+    if latest_step(ckpt) is not None:
+        state, saved_norm, _ = restore_checkpoint(ckpt, state, expected_config=config)
+        if normalizer is not None and not _same_normalizer(normalizer, saved_norm):
+            raise CheckpointError(f"{ckpt}: was saved with a different normaliser than the one given")
+        prep = prep._replace(normalizer=saved_norm, sym=normalized_symmetry(
+            env.symmetry_ops(tuple(prep.policy_config.obs_keys), prep.policy_config.action_key), saved_norm))
+        start = int(state.step)
+    save_config(out / "config.json", {
+        **config, "data": {"path": str(data) if not isinstance(data, Demos) else None,
+                           "episodes": demos.n_episodes, "steps": demos.n_steps},
+        "devices": jax.device_count()})
+    loop = make_train_loop(tc, prep.dataset, prep.sym if tc.uses_mirror else None)
+    probe = _probe(policy, prep.dataset, prep.sym)
+    key = base_key(tc)
+    log_path = out / "train.jsonl"
+    if start and log_path.exists():  # drop rows logged after the checkpoint we resume from
+        rows = [r for r in read_log(log_path) if r.get("step", 0) <= start]
+        atomic_write_bytes(log_path, "".join(json.dumps(r) + "\n" for r in rows).encode())
+    total, k = tc.total_steps, tc.steps_per_dispatch
+    t0 = time.perf_counter()
+    compile_s = None
+    row: dict[str, Any] = {}
+    with open(log_path, "a" if start else "w") as log, tqdm(
+            total=total, initial=start, desc=desc, unit="step", disable=not progress) as bar:
+        while int(state.step) < total:
+            tc0 = time.perf_counter()
+            prev = state
+            state, metrics = loop(state, key)
+            metrics = jax.device_get(metrics)
+            if compile_s is None:
+                compile_s = time.perf_counter() - tc0
+            bad = ~(np.isfinite(metrics["total"]) & np.isfinite(metrics["grad_norm"]))
+            if bad.any():
+                _diverged(ckpt, prev, prep.normalizer, config, metrics, bad)
+            step = int(state.step)
+            row = {"step": step, **{m: float(np.mean(v)) for m, v in metrics.items()},
+                   "equiv_err": float(probe(state.ema_params)), "wall_s": time.perf_counter() - t0}
+            log.write(json.dumps(row) + "\n")
+            log.flush()
+            bar.update(k)
+            bar.set_postfix(bc=f"{row['bc']:.3f}", sym=f"{row['sym']:.3f}", equiv=f"{row['equiv_err']:.3f}")
+            if checkpoint_every and step % checkpoint_every == 0 and step < total:
+                save_checkpoint(ckpt, state, prep.normalizer, config, max_to_keep=2)
+    if latest_step(ckpt) != int(state.step):
+        save_checkpoint(ckpt, state, prep.normalizer, config, max_to_keep=2)
+    return {"steps": int(state.step), "resumed_from": start, "train_s": time.perf_counter() - t0,
+            "first_dispatch_s_incl_compile": compile_s, "final": row, "checkpoint": str(ckpt),
+            "log": str(log_path), "config": str(out / "config.json")}
+
+
+def _diverged(ckpt: Path, prev: TrainState, normalizer: Normalizer, config: dict, metrics: dict,
+              bad: np.ndarray) -> None:
+    first = int(np.argmax(bad))
+    step = int(prev.step) + first + 1
+    kept = latest_step(ckpt)
+    if kept is None or kept < int(prev.step):
+        save_checkpoint(ckpt, prev, normalizer, config, max_to_keep=None)
+        kept = int(prev.step)
+    terms = ", ".join(f"{m}={float(np.asarray(metrics[m])[first]):.4g}"
+                      for m in ("bc", "sym", "total", "grad_norm") if m in metrics)
+    where = f"the last good checkpoint is step {kept} in {ckpt}"
+    raise TrainingDiverged(
+        f"the loss became non-finite at step {step} ({terms}); training stopped and {where}. "
+        "Lower train.learning_rate or set train.grad_clip, then rerun to resume from it.")
+
+
+def load_run(run_dir: str | Path) -> Run:
+    """Load the last checkpoint of a run folder written by :func:`train`.
+
+    Raises:
+      FileNotFoundError: no checkpoint. CheckpointError: unreadable or inconsistent.
+    """
+    ckpt = Path(run_dir) / "ckpt"
+    if latest_step(ckpt) is None:
+        raise FileNotFoundError(f"no checkpoint in {ckpt} (train with `equibim train` first)")
+    saved = read_checkpoint_config(ckpt)
+    try:
+        config = {"task": config_from_dict(TaskConfig, saved["task"]),
+                  "policy": config_from_dict(PolicyConfig, saved["policy"]),
+                  "train": config_from_dict(TrainConfig, saved["train"])}
+    except (KeyError, ValueError, TypeError) as e:
+        raise CheckpointError(f"{ckpt}: its config is not a training run's ({e})") from e
+    policy = make_policy(config["policy"].name, config["policy"])
+    state, normalizer, _ = restore_checkpoint(ckpt, create_train_state(policy, config["train"]))
+    return Run(policy, state, normalizer, config)
+
