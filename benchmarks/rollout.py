@@ -26,7 +26,7 @@ import numpy as np  # noqa: E402
 
 from equibim_jax._io import atomic_write_json  # noqa: E402
 from equibim_jax.evaluation.rollout import make_policy_rollout  # noqa: E402
-from equibim_jax.experiments.pipeline import load_policy  # noqa: E402
+from equibim_jax.training import load_run  # noqa: E402
 
 
 def main(argv=None):
@@ -37,13 +37,13 @@ def main(argv=None):
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--seed", type=int, default=1)
     a = p.parse_args(argv)
-    model, state, normalizer, config = load_policy(a.run)
-    env = config["env_spec"].make()
+    run = load_run(a.run)
+    state, normalizer, env = run.state, run.normalizer, run.make_env()
     keys = jax.random.split(jax.random.key(a.seed), a.episodes)
     flags = jnp.zeros(a.episodes, bool)
     rows = []
     for every in (True, False):
-        fn = jax.jit(jax.vmap(make_policy_rollout(env, model, normalizer, observe_every_step=every),
+        fn = jax.jit(jax.vmap(make_policy_rollout(env, run.policy, normalizer, observe_every_step=every),
                               in_axes=(None, 0, 0)))
         t = time.perf_counter()
         lowered = fn.lower(state.ema_params, keys, flags)

@@ -45,12 +45,12 @@ import optax
 
 from equibim_jax._xla_options import train_compiler_options
 from equibim_jax.data.normalizer import signed_permutation
-from equibim_jax.policies import EncoderConfig, PolicyConfig, UNetConfig
+from equibim_jax.data import make_dataset
+from equibim_jax.policies import DP3Config, EncoderConfig, UNetConfig, make_policy
 from equibim_jax.training import (
     TrainConfig,
     base_key,
     create_train_state,
-    make_dataset,
     make_train_loop,
     make_train_step,
 )
@@ -83,7 +83,7 @@ def synthetic_problem(args):
         pc_key="point_cloud" if args.num_points > 0 else None,
         pc_hidden=tuple(args.pc_hidden),
     )
-    policy = PolicyConfig(
+    policy = DP3Config(
         action_dim=a,
         state_dim=a,
         obs_horizon=2,
@@ -119,18 +119,20 @@ def bench_variant(args, policy, dataset, sym, conv_impl: str, mirror: bool, peak
         batch_size=args.batch,
         sym_batch_size=sym_batch if mirror else None,
         sym_weight=0.1 if mirror else 0.0,
+        sym_norm="mse",
+        sym_stop_gradient=False,
         steps_per_dispatch=args.k,
         warmup_steps=10,
-        total_steps=10_000,
+        total_steps=10_000 * args.k,
     )
-    state, _ = create_train_state(policy, train)
+    state = create_train_state(make_policy("dp3", policy), train)
     n_params = sum(x.size for x in jax.tree.leaves(state.params))
     key = base_key(train)
     out = {"conv_impl": conv_impl, "mirror_branch": mirror,
            "sym_batch": (sym_batch or args.batch) if mirror else 0, "params": int(n_params)}
 
     # Single step: AOT compile (timed), FLOPs from XLA's cost analysis.
-    step = make_train_step(policy, train, dataset, sym)
+    step = make_train_step(train, dataset, sym)
     t = time.perf_counter()
     step_c = step.lower(state, key).compile()
     out["compile_s_step"] = time.perf_counter() - t
@@ -140,7 +142,7 @@ def bench_variant(args, policy, dataset, sym, conv_impl: str, mirror: bool, peak
     out["gflop_per_step"] = flops / 1e9
 
     # K steps in one lax.scan dispatch.
-    loop = make_train_loop(policy, train, dataset, sym)
+    loop = make_train_loop(train, dataset, sym)
     t = time.perf_counter()
     loop_c = loop.lower(state, key).compile()
     out["compile_s_loop"] = time.perf_counter() - t

@@ -5,7 +5,7 @@ Scene
 * **Cup**: a free body, a 5 x 5 x 8 cm box of 50 g (one collision geom, so 4 contacts with
   the table, 4 with each of the six gripper geoms and 4 with the coaster) with a thin dark
   visual plate on its top face that marks the opening. A box rather than a ring of wall
-  geoms because contacts dominate MJX's cost (``SHARP_BITS.md``); the flat faces also give
+  geoms because contacts dominate MJX's cost on the CPU; the flat faces also give
   the pads a face-to-face friction grasp. It uses :func:`robots.object_collision`.
 * **Coaster**: a 9 x 9 x 0.8 cm plate on two slide joints (x, y) at table height, so its
   position is part of ``qpos`` (randomised by ``init`` and mirrored by ``mirror_state``)
@@ -17,7 +17,7 @@ Scene
 Initial state (mirror symmetric for ``side="both"``)
 ----------------------------------------------------
 ``s = +1`` (left, y > 0) or ``-1``. Cup at ``x ~ U(cup_x_range)``, ``y = s U(cup_y_range)``
-(|y| in [0.15, 0.30] as in TASKS.md). Coaster on the same side, nearer the centre:
+(|y| in [0.15, 0.30], docs/tasks.md). Coaster on the same side, nearer the centre:
 ``x ~ U(coaster_x_range)``, ``|y| ~ U(coaster_y_min, |y_cup| - min_gap)``, so the two are
 at least ``min_gap`` apart in y and never overlap. Arms at home.
 
