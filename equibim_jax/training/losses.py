@@ -166,6 +166,8 @@ def policy_loss(
         raise ValueError("policy_loss: sym_weight > 0 or mirror_augment needs a symmetry")
     b = jax.tree.leaves(inputs)[0].shape[0]
     n = b if sym_batch is None else int(sym_batch)
+    if not 1 <= n <= b:
+        raise ValueError(f"policy_loss: sym_batch must be in [1, B={b}] or None, got {sym_batch}")
     pred, m_inputs, pred_m = both_branches(policy, params, inputs, sym, n)
     bc = policy.bc_loss(pred, targets)
     if mirror_augment:
