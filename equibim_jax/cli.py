@@ -10,7 +10,7 @@ import dataclasses
 import shlex
 import sys
 import time
-from typing import Any
+from typing import Any, Literal
 
 import tyro
 
@@ -171,30 +171,81 @@ class Equivariance:
 
 @dataclasses.dataclass
 class SymmetryDemo:
-    """Derive the mirror S of a robot from its MJCF and print the joint map and its residual."""
+    """Derive and verify the mirror S of a built-in robot or of any MJCF (--mjcf, --mirror-normal); print the
+    joint map, residuals per body and the dynamic report; --out writes the mirror map as JSON. Exits with
+    status 1 and the per-body report when the model is not symmetric within the tolerance."""
 
     robot: str = "robot_a"
-    """Robot name (see `equibim robots`)."""
+    """Built-in robot name (see `equibim robots`); not used with --mjcf."""
+    mjcf: str | None = None
+    """Path of any MJCF model to derive S for (instead of --robot); needs --mirror-normal."""
+    mirror_normal: tuple[float, float, float] | None = None
+    """Normal of the mirror plane, e.g. `1 0 0` for x = 0 (default with --robot: the robot's plane)."""
+    mirror_point: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """A point on the mirror plane."""
+    approximate: bool = False
+    """Derive the best map of a nearly symmetric model and report its residual per body."""
+    dynamics: Literal["report", "strict"] = "report"
+    """report: measure asymmetric masses, centres of mass, inertias and geoms; strict: refuse them."""
+    tol: float | None = None
+    """Largest accepted forward-kinematics residual in m (default 0.0005; 0.05 with --approximate)."""
+    out: str | None = None
+    """Write the mirror map as JSON here."""
     n_verify: int = 256
     """Random joint configurations used to verify S on forward kinematics."""
     seed: int = 0
 
     def run(self) -> None:
-        from equibim_jax.sim import load_robot
-        from equibim_jax.symmetry import derive_symmetry, verify_symmetry
+        import warnings
+
+        import mujoco
+
+        from equibim_jax.symmetry import Mirror, SymmetryError, SymmetryWarning, derive_symmetry, save_mirror_map
 
         t0 = time.perf_counter()
-        model, mirror = load_robot(self.robot)
-        ms = derive_symmetry(model, mirror)
-        res = verify_symmetry(model, ms, n=self.n_verify, seed=self.seed)
-        dt = time.perf_counter() - t0
-        print(f"robot {self.robot}: {model.nbody} bodies, {model.njnt} joints, {model.nu} actuators")
+        ee_sites = None
+        if self.mjcf is not None:
+            if self.mirror_normal is None:
+                print("equibim symmetry: --mjcf needs --mirror-normal NX NY NZ (e.g. 1 0 0 for the plane x = 0)",
+                      file=sys.stderr)
+                raise SystemExit(2)
+            try:
+                model = mujoco.MjModel.from_xml_path(self.mjcf)
+            except (ValueError, FileNotFoundError) as e:
+                print(f"equibim symmetry: cannot load {self.mjcf}: {e}", file=sys.stderr)
+                raise SystemExit(2) from None
+            mirror, source = Mirror(self.mirror_normal, self.mirror_point), self.mjcf
+        else:
+            from equibim_jax.sim import load_robot, robot_info
+
+            model, mirror = load_robot(self.robot)
+            if self.mirror_normal is not None:
+                mirror = Mirror(self.mirror_normal, self.mirror_point)
+            ee_sites, source = tuple(robot_info(self.robot).ee_sites), f"robot {self.robot}"
+        print(f"{source}: {model.nbody} bodies, {model.njnt} joints, {model.nu} actuators")
         print(f"mirror plane: normal {mirror.normal}, point {mirror.point}\n")
+        # Concessions (intersected ranges) are printed with the report, not as Python warnings.
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", SymmetryWarning)
+            try:
+                ms = derive_symmetry(model, mirror, tol=self.tol, n_verify=self.n_verify, seed=self.seed,
+                                     approximate=self.approximate, dynamics=self.dynamics)
+            except SymmetryError as e:
+                notes = "".join(f"\nwarning: {w.message}" for w in caught if issubclass(w.category, SymmetryWarning))
+                print(f"equibim symmetry: {source} is not mirror-symmetric within the tolerance"
+                      f"{'' if self.approximate else ' (try --approximate for a nearly symmetric robot)'}:\n{e}"
+                      f"{notes}", file=sys.stderr)
+                raise SystemExit(1) from None
+        dt = time.perf_counter() - t0
         print(ms.describe())
         print("\nqpos map  (q' = P D q + b):")
         print(ms.qpos.describe())
+        print(f"\n{ms.report(min_residual=1e-9)}")
         print(f"\nverified forward-kinematics residual over {self.n_verify} random postures: "
-              f"{res:.3e} m  (derived and verified in {dt:.2f} s)")
+              f"{ms.residual:.3e} m  (derived and verified in {dt:.2f} s)")
+        if self.out:
+            save_mirror_map(ms, self.out, ee_sites=ee_sites)
+            print(f"wrote {self.out}")
 
 
 def _demo(args: list[str], command: str) -> None:

@@ -215,6 +215,7 @@ def test_demo_train_configs_differ_only_in_l_sym():
                                sym_batch_size=None) == base
 
 
+@pytest.mark.slow  # long compile; CI runs it with the slow suite
 def test_mirrored_demo_replays_as_a_right_side_success(tiny_demo):
     """S on the data: the mirrored actions of a left demo, replayed from the mirror image of
     its initial state, succeed and follow the mirrored demo (the mirrored-side windows that

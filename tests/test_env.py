@@ -48,7 +48,8 @@ def test_reset_is_deterministic_and_sides_mirror_symmetric():
     assert set(sides.tolist()) == {-1.0, 1.0}
 
 
-@pytest.mark.parametrize("robot", robot_names())
+@pytest.mark.parametrize("robot", [pytest.param(r, marks=pytest.mark.slow) if r != "robot_a" else r
+                                   for r in robot_names()])
 def test_mirror_state_involution_and_obs_equivariance(robot):
     env = _env(robot)
     s = env.reset(jax.random.key(3))
@@ -82,6 +83,7 @@ def x64():
     jax.config.update("jax_enable_x64", False)
 
 
+@pytest.mark.slow  # long compile; CI runs it with the slow suite
 def test_dynamics_equivariance_with_contacts(x64):
     """step(S s, S a) stays close to S step(s, a) over 100 steps with the gripper on a box.
 

@@ -109,6 +109,7 @@ def test_summarize_matches_wilson():
         summarize([])
 
 
+@pytest.mark.slow  # long compile; CI runs it with the slow suite
 def test_mirrored_noise_makes_an_equivariant_policy_repeat_its_episode_mirrored():
     """With ``mirror_noise`` the mirrored episode uses ``S_a z``: an exactly equivariant
     policy (zero weights: eps = 0, so DDIM maps noise to actions by clip and scale, which
@@ -144,6 +145,7 @@ def test_step_without_observation_keeps_obs_and_changes_nothing_else():
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=0, atol=1e-6)
 
 
+@pytest.mark.slow  # long compile; CI runs it with the slow suite
 def test_rollout_observing_only_what_the_policy_reads_is_the_same_episode():
     # To = 2, Ta = 4: the default rollout renders 2 of every 4 steps; the episode (states,
     # successes) must be the one of a rollout that observes every step.

@@ -12,7 +12,8 @@ def test_generate_left_demos_deterministic_and_round_trip(tmp_path):
     env = make_env("place_empty_cup", obs=("qpos", "point_cloud"), action="joint", side="left", n_points=32)
     d1, stats = generate_demos(env, jax.random.key(0), 2, chunk=2, progress=False)
     assert stats["kept"] == 2 and d1.success.all()
-    assert np.all(d1.side == 1.0)  # left side only
+    # left side only (y > 0): the objects in the first point cloud sit on the left
+    assert np.all(d1.obs["point_cloud"][:, 0, :, 1].mean(-1) > 0.05)
     assert d1.obs["point_cloud"].shape[2:] == (32, 3) and d1.action.shape[-1] == env.action_size
     assert np.all(d1.length < env.config.episode_length)  # cut shortly after success
     d2, _ = generate_demos(env, jax.random.key(0), 2, chunk=2, progress=False)

@@ -336,7 +336,8 @@ def test_rounded_constants_accepted_by_default_tol():
 @pytest.mark.parametrize(
     "kw, names",
     [
-        (dict(right_l1="0.31"), ["r_link1", "r_pitch"]),  # one link 1 cm longer
+        # one link 1 cm longer: the next joint's anchor is 1 cm off its mirror
+        (dict(right_l1="0.31"), ["r_link2", "r_roll", "0.01 m"]),
         (dict(right_pitch_axis="0 0 1"), ["l_pitch", "r_pitch"]),  # one axis changed
         (dict(right_roll_range="-2 0.5"), ["r_roll"]),  # one axis flipped (range not mirrored)
     ],
@@ -367,12 +368,18 @@ def test_verify_detects_a_wrong_map():
     assert sy.verify_symmetry(model, bad, n=16) > 1e-2
 
 
-def test_geom_colour_asymmetry_is_refused():
-    """Images mirror as a flip only if mirrored geoms look the same."""
+def test_geom_colour_asymmetry_is_reported_or_refused():
+    """Images mirror as a flip only if mirrored geoms look the same: a geom of another colour
+    is reported (kinematics are still exact), and refused with dynamics="strict"."""
     xml = fx.side_by_side_xml(with_cup=False)
     model = fx.load(xml)
     g = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "r_link2")
     geom = [i for i in range(model.ngeom) if model.geom_bodyid[i] == g][0]
     model.geom_rgba[geom] = [0.1, 0.2, 0.9, 1.0]
+    ms = sy.derive_symmetry(model, sy.Mirror.from_axis("y"))
+    assert not ms.dynamics_exact and ms.residual <= 1e-9
+    assert ms.geoms[geom] == -1
+    (item,) = [a for a in ms.dynamics.items if a.element == f"#{geom}"]
+    assert item.kind == "geom" and "colour" in item.detail and "r_link2" in item.detail
     with pytest.raises(sy.SymmetryError, match="same type, size and colour"):
-        sy.derive_symmetry(model, sy.Mirror.from_axis("y"))
+        sy.derive_symmetry(model, sy.Mirror.from_axis("y"), dynamics="strict")

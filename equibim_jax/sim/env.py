@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import warnings
 from typing import Any, Callable, Mapping
 
 import jax
@@ -219,6 +220,14 @@ class Env:
         self.mj_model = model
         self.mirror = self.info.mirror
         self.sym: ModelSymmetry = derive_symmetry(model, self.mirror)
+        if not self.sym.dynamics_exact:
+            # S is exact on kinematics, but mirrored rollouts are then only approximately
+            # mirror images of each other: say so once, with what differs.
+            warnings.warn(
+                f"model is kinematically mirror-symmetric but its dynamics or geoms are not; "
+                f"physics is only approximately mirror-equivariant:\n{self.sym.dynamics.describe()}",
+                stacklevel=2,
+            )
         self.mjx_model = mjx.put_model(model)
 
         m = model
