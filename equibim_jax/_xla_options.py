@@ -2,13 +2,10 @@
 
 On XLA:CPU, fusions handed to YNNPACK cover dots, element-wise ops and reductions. For the
 diffusion-policy train step, keeping only the dots in YNNPACK fusions
-(``xla_cpu_experimental_ynn_fusion_type=LIBRARY_FUSION_TYPE_DOT``) was measured faster on
-2 cores: the DP3 encoder's gradient alone took 4.5 ms against 17.8 ms
-(``benchmarks/layers.py``), the demo's train step 21.2 ms against 26.1 ms (baseline) and
-38.1 ms against 40.8 ms (+EquiBim) (``benchmarks/train.py --compare-xla-tuning``; numbers
-in the README). MJX physics got slower when reductions left YNNPACK process-wide (demo
-generation took 63 s with ``XLA_FLAGS=--xla_cpu_experimental_ynn_fusion_type=-reduce``
-against 51 s without), so the option is passed per ``jit``, to the train step and loop only.
+(``xla_cpu_experimental_ynn_fusion_type=LIBRARY_FUSION_TYPE_DOT``) is the faster choice on
+small CPUs; ``benchmarks/train.py --compare-xla-tuning`` measures both (figures in
+``benchmarks/README.md``). MJX physics gets slower when reductions leave YNNPACK
+process-wide, so the option is passed per ``jit``, to the train step and loop only.
 
 ``EQUIBIM_JAX_XLA_TUNING=0`` turns it off. Other backends get no options.
 """
