@@ -52,18 +52,22 @@ def test_reset_is_deterministic_and_sides_mirror_symmetric():
                                    for r in robot_names()])
 def test_mirror_state_involution_and_obs_equivariance(robot):
     env = _env(robot)
-    s = env.reset(jax.random.key(3))
     # A random posture with velocities, so every field is non-trivial.
     rng = np.random.default_rng(0)
-    q = np.asarray(s.data.qpos).copy()
-    q[env.arm_qadr] += rng.uniform(-0.4, 0.4, env.arm_qadr.shape)
-    data = s.data.replace(qpos=jnp.asarray(q), qvel=jnp.asarray(rng.normal(size=env.mj_model.nv), jnp.float32))
+    dq = np.zeros(env.mj_model.nq, np.float32)
+    dq[env.arm_qadr] = rng.uniform(-0.4, 0.4, env.arm_qadr.shape)
+    qvel = jnp.asarray(rng.normal(size=env.mj_model.nv), jnp.float32)
     from mujoco import mjx
 
-    s = s.replace(data=mjx.forward(env.mjx_model, data))
-    s = s.replace(obs=env.observe(s.data))
-    sm = jax.jit(env.mirror_state)(s)
-    smm = jax.jit(env.mirror_state)(sm)
+    @jax.jit  # one compiled program: reset, perturb, forward, observe, mirror twice
+    def states(key, dq, qvel):
+        s = env.reset(key)
+        data = mjx.forward(env.mjx_model, s.data.replace(qpos=s.data.qpos + dq, qvel=qvel))
+        s = s.replace(data=data, obs=env.observe(data))
+        sm = env.mirror_state(s)
+        return s, sm, env.mirror_state(sm)
+
+    s, sm, smm = states(jax.random.key(3), jnp.asarray(dq), qvel)
     np.testing.assert_allclose(smm.data.qpos, s.data.qpos, atol=1e-6)
     np.testing.assert_allclose(smm.data.qvel, s.data.qvel, atol=1e-6)
     assert float(sm.info["side"]) == -float(s.info["side"])

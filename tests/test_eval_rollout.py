@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from equibim_jax.data import fit_normalizer
-from equibim_jax.evaluation.rollout import (evaluate, evaluate_sides, make_policy_rollout,
+from equibim_jax.evaluation.rollout import (_runner, evaluate, evaluate_sides, make_policy_rollout,
                                             mirror_pair_gap, summarize)
 from equibim_jax.policies import DP3Config, EncoderConfig, UNetConfig, make_policy
 from equibim_jax.sim.env import Env, EnvConfig
@@ -16,28 +16,18 @@ from equibim_jax.sim.scenes import BoxScene
 
 
 def test_policy_rollout_runs_chunks_and_is_deterministic():
-    env = Env(EnvConfig(obs=("qpos", "point_cloud"), n_points=32, episode_length=12), BoxScene())
-    cfg = DP3Config(
-        action_dim=env.action_size, state_dim=env.action_size, obs_horizon=2, pred_horizon=8,
-        action_horizon=4, encoder=EncoderConfig(pc_hidden=(16, 32), pc_out=16, state_out=16, state_hidden=(16,)),
-        unet=UNetConfig(down_dims=(16, 32)), num_inference_steps=3,
-    )
-    policy = make_policy("dp3", cfg)
-    params = policy.init(jax.random.key(0))
-    s = env.reset(jax.random.key(1))
-    rng = np.random.default_rng(0)
-    frames = {"qpos": np.asarray(s.obs["qpos"])[None] + rng.normal(0, 0.1, (50, env.action_size)),
-              "point_cloud": np.asarray(s.obs["point_cloud"])[None].repeat(50, 0),
-              "action": np.asarray(s.obs["qpos"])[None] + rng.normal(0, 0.1, (50, env.action_size))}
+    """The tiny env/policy below: 8 steps in 2 chunks of Ta = 4, through the same compiled
+    runner that ``evaluate`` uses, twice with the same keys."""
+    env, policy, params, norm, s = _tiny_env_policy()
     sym = env.symmetry_ops(("qpos", "point_cloud"))
     assert sym == {"qpos": env.obs_symmetry.ops["qpos"], "point_cloud": env.obs_symmetry.ops["point_cloud"],
                    "action": env.action_symmetry}
-    norm = fit_normalizer(frames, sym)
-    roll = make_policy_rollout(env, policy, norm)
-    run = jax.jit(jax.vmap(roll, in_axes=(None, 0)))
+    roll = _tiny_rollout()
+    run = _runner(roll)
     keys = jax.random.split(jax.random.key(2), 2)
-    a, b = run(params, keys), run(params, keys)
-    assert a["success_t"].shape == (2, 12)  # 3 chunks of Ta = 4
+    flags = jnp.zeros(2, bool)
+    a, b = run(params, keys, flags), run(params, keys, flags)
+    assert a["success_t"].shape == (2, 8)  # 2 chunks of Ta = 4
     np.testing.assert_array_equal(np.asarray(a["final_qpos"]), np.asarray(b["final_qpos"]))
     assert np.all(np.isfinite(np.asarray(a["final_qpos"])))
     # The policy moved the arms (random weights, so not towards anything in particular).
@@ -59,7 +49,7 @@ def _tiny_env_policy(action_noise=0.0, obs_horizon=1, pred_horizon=4):
     )
     policy = make_policy("dp3", cfg)
     params = policy.init(jax.random.key(0))
-    s = env.reset(jax.random.key(1))
+    s = jax.jit(env.reset)(jax.random.key(1))
     rng = np.random.default_rng(0)
     frames = {"qpos": np.asarray(s.obs["qpos"])[None] + rng.normal(0, 0.1, (20, 14)),
               "point_cloud": np.asarray(s.obs["point_cloud"])[None].repeat(20, 0),
@@ -82,12 +72,12 @@ def test_mirrored_rollout_starts_from_the_mirror_image_and_sides_are_paired():
     roll0 = make_policy_rollout(env, policy, norm, length=0)
     key = jax.random.key(5)
     k_reset = jax.random.split(key)[0]
-    start = env.reset(k_reset)
-    plain = jax.jit(roll0)(params, key, False)
-    mirr = jax.jit(roll0)(params, key, True)
+    start = jax.jit(env.reset)(k_reset)
+    run0 = jax.jit(roll0)
+    plain, mirr = run0(params, key, False), run0(params, key, True)
     np.testing.assert_array_equal(np.asarray(plain["final_qpos"]), np.asarray(start.data.qpos))
     np.testing.assert_allclose(np.asarray(mirr["final_qpos"]),
-                               np.asarray(env.mirror_state(start).data.qpos), atol=1e-6)
+                               np.asarray(jax.jit(env.mirror_state)(start).data.qpos), atol=1e-6)
     assert not np.allclose(np.asarray(mirr["final_qpos"]), np.asarray(plain["final_qpos"]))
     # Both sides through one compiled function; same episode count and keys per side.
     roll = _tiny_rollout()
