@@ -143,7 +143,7 @@ def test_bad_config_and_actions():
     with pytest.raises(ValueError, match="unknown robot"):
         EnvConfig(robot="robot_z")
     env = _env()
-    s = env.reset(jax.random.key(0))
+    s = jax.jit(env.reset)(jax.random.key(0))
     with pytest.raises(ValueError, match="action must have shape"):
         env.step(s, jnp.zeros(env.action_size + 1))
     a = s.obs["qpos"].at[2].set(jnp.nan)

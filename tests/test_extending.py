@@ -178,3 +178,18 @@ def test_a_torn_last_log_line_does_not_break_resume(toy_data, registered, tmp_pa
     with pytest.warns(UserWarning, match="unreadable line"):
         train(out / "demos.zarr", tmp_path / "run", registered, tc, checkpoint_every=10, progress=False)
     assert [r["step"] for r in read_log(log)] == [10, 20]
+
+
+def test_option_strings_are_parsed_by_field_type():
+    """Options given as strings (CLI, JSON) become the field's type, for every union form."""
+    from typing import Optional
+
+    from equibim_jax.tasks import _coerce
+
+    assert _coerce("cone", str | None, "elliptic") == "elliptic"
+    assert _coerce("cone", Optional[str], "elliptic") == "elliptic"
+    assert _coerce("r", tuple[float, float] | None, "0.1,0.2") == (0.1, 0.2)
+    assert _coerce("r", tuple[float, float] | None, "none") is None
+    assert _coerce("n", int, "64") == 64
+    with pytest.raises(ValueError, match="not a valid"):
+        _coerce("n", int, "sixty")

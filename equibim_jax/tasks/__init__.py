@@ -27,6 +27,7 @@ import dataclasses
 import importlib
 import json
 import pkgutil
+import types
 import typing
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -126,18 +127,21 @@ def task_options(task: str) -> tuple[str, ...]:
     return _ENV_FIELDS + task_entry(task).scene_fields
 
 
+_UNIONS = (typing.Union, types.UnionType)  # Optional[str] and str | None
+
+
 def _coerce(name: str, tp: Any, value: Any) -> Any:
     """``value`` as the field type ``tp``: strings are parsed (JSON, or comma lists for
     tuples of strings), lists become tuples."""
     origin, args = typing.get_origin(tp), typing.get_args(tp)
-    if isinstance(value, str) and tp is not str and not (origin is typing.Union and str in args):
+    if isinstance(value, str) and tp is not str and not (origin in _UNIONS and str in args):
         text = value.strip()
         if text.lower() == "none":
             return None
         try:
             value = json.loads(text)
         except json.JSONDecodeError:
-            if origin is tuple or (origin in (typing.Union,) and any(typing.get_origin(a) is tuple for a in args)):
+            if origin is tuple or (origin in _UNIONS and any(typing.get_origin(a) is tuple for a in args)):
                 try:  # "0.1,0.2" -> [0.1, 0.2]; "qpos,point_cloud" -> ["qpos", "point_cloud"]
                     value = json.loads(f"[{text}]")
                 except json.JSONDecodeError:
