@@ -23,6 +23,8 @@ from equibim_jax.experts.move_can_pot import CanExpertConfig
 from equibim_jax.tasks import make_env, make_scene, task_entry, task_names, task_options
 from equibim_jax.tasks.move_can_pot import MoveCanPot
 
+from task_rollouts import collides, expert_rollouts
+
 TASK = "move_can_pot"
 N_SEEDS = 4
 T_TEST = 210  # the script's release ends at step 200 (CanExpertConfig().release_end)
@@ -37,26 +39,7 @@ def env():
 @pytest.fixture(scope="module")
 def rollouts(env):
     """(initial states [2N], final states [2N], traj) for N seeds then their N mirror images."""
-    expert = make_expert(env)
-    roll = make_rollout(env, expert, length=T_TEST, obs=False)
-
-    @jax.jit
-    def starts(keys):
-        s = jax.vmap(env.reset)(keys)
-        sm = jax.vmap(env.mirror_state)(s)
-        return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), s, sm)
-
-    @jax.jit
-    def run(s0):
-        return jax.vmap(roll.from_state)(s0)
-
-    s0 = starts(jax.random.split(jax.random.key(11), N_SEEDS))
-    final, traj = run(s0)
-    return s0, final, jax.tree.map(np.asarray, traj)
-
-
-def _collides(m, g1, g2) -> bool:
-    return bool((m.geom_contype[g1] & m.geom_conaffinity[g2]) or (m.geom_contype[g2] & m.geom_conaffinity[g1]))
+    return expert_rollouts(env, N_SEEDS, T_TEST, seed=11)
 
 
 def _poses(env, qpos):
@@ -115,7 +98,7 @@ def test_model_is_physical_and_mirror_symmetric(env):
     # Few contact pairs: the can touches the grippers, the table and the pot; the pot only the can.
     geom = lambda n: m.geom(n).id
     gripper = {geom(f"{s}_{g}") for s in ("left", "right") for g in ("pad_a", "pad_b", "palm")}
-    partners = lambda g: {h for h in range(m.ngeom) if m.geom_bodyid[h] != m.geom_bodyid[g] and _collides(m, g, h)}
+    partners = lambda g: {h for h in range(m.ngeom) if m.geom_bodyid[h] != m.geom_bodyid[g] and collides(m, g, h)}
     assert partners(geom("can")) == gripper | {geom("table"), geom("pot")}
     assert partners(geom("pot")) == {geom("can")}
 

@@ -22,6 +22,8 @@ from equibim_jax.sim import robots
 from equibim_jax.tasks import make_env, make_scene, task_entry, task_names, task_options
 from equibim_jax.tasks.press_stapler import PressStapler
 
+from task_rollouts import expert_rollouts
+
 N_SEEDS = 4
 T_TEST = 135  # a little longer than the script (StaplerExpertConfig().horizon = 125 steps)
 MIRROR_POSE = np.array([1.0, -1.0, -1.0])  # (x, y, yaw) under the mirror
@@ -35,23 +37,8 @@ def env():
 @pytest.fixture(scope="module")
 def rollouts(env):
     """(initial states [2N], final states [2N], traj) for N seeds then their N mirror images."""
-    expert = make_expert(env)
-    assert expert.horizon < T_TEST
-    roll = make_rollout(env, expert, length=T_TEST, obs=False)
-
-    @jax.jit
-    def starts(keys):
-        s = jax.vmap(env.reset)(keys)
-        sm = jax.vmap(env.mirror_state)(s)
-        return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), s, sm)
-
-    @jax.jit
-    def run(s0):
-        return jax.vmap(roll.from_state)(s0)
-
-    s0 = starts(jax.random.split(jax.random.key(3), N_SEEDS))
-    final, traj = run(s0)
-    return s0, final, jax.tree.map(np.asarray, traj)
+    assert make_expert(env).horizon < T_TEST
+    return expert_rollouts(env, N_SEEDS, T_TEST, seed=3)
 
 
 def _valid_start(env, qpos, side):

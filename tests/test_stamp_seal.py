@@ -22,6 +22,8 @@ from equibim_jax.experts.stamp_seal import SealExpertConfig
 from equibim_jax.tasks import make_env, make_scene, task_entry, task_names, task_options
 from equibim_jax.tasks.stamp_seal import StampSeal
 
+from task_rollouts import collides, expert_rollouts
+
 TASK = "stamp_seal"
 N_SEEDS = 4
 T_TEST = 210  # the script's release ends at step 200 (SealExpertConfig().release_end)
@@ -35,26 +37,7 @@ def env():
 @pytest.fixture(scope="module")
 def rollouts(env):
     """(initial states [2N], final states [2N], traj) for N seeds then their N mirror images."""
-    expert = make_expert(env)
-    roll = make_rollout(env, expert, length=T_TEST, obs=False)
-
-    @jax.jit
-    def starts(keys):
-        s = jax.vmap(env.reset)(keys)
-        sm = jax.vmap(env.mirror_state)(s)
-        return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), s, sm)
-
-    @jax.jit
-    def run(s0):
-        return jax.vmap(roll.from_state)(s0)
-
-    s0 = starts(jax.random.split(jax.random.key(11), N_SEEDS))
-    final, traj = run(s0)
-    return s0, final, jax.tree.map(np.asarray, traj)
-
-
-def _collides(m, g1, g2) -> bool:
-    return bool((m.geom_contype[g1] & m.geom_conaffinity[g2]) or (m.geom_contype[g2] & m.geom_conaffinity[g1]))
+    return expert_rollouts(env, N_SEEDS, T_TEST, seed=11)
 
 
 # ---------------------------------------------------------------------------- registry
@@ -108,7 +91,7 @@ def test_model_is_physical_and_mirror_symmetric(env):
     # the mat, the mat only the base.
     geom = lambda n: m.geom(n).id
     gripper = {geom(f"{s}_{g}") for s in ("left", "right") for g in ("pad_a", "pad_b", "palm")}
-    partners = lambda g: {h for h in range(m.ngeom) if m.geom_bodyid[h] != m.geom_bodyid[g] and _collides(m, g, h)}
+    partners = lambda g: {h for h in range(m.ngeom) if m.geom_bodyid[h] != m.geom_bodyid[g] and collides(m, g, h)}
     assert partners(geom("seal_handle")) == gripper
     assert partners(geom("seal_base")) == gripper | {geom("table"), geom("mat")}
     assert partners(geom("mat")) == {geom("seal_base")}
