@@ -1,6 +1,7 @@
 """Dataset round trip, atomic overwrite (and its failure paths) and corruption rejection."""
 
 import ctypes
+import dataclasses
 import errno
 import json
 import os
@@ -211,3 +212,25 @@ def test_old_and_unknown_versions_are_rejected(tmp_path):
     meta_file.write_text(json.dumps(meta))
     with pytest.raises(DatasetError, match="format version 3; this code reads version 2"):
         load(p)
+
+
+def test_action_spaces(tmp_path):
+    d = _demos()
+    assert d.action_spaces == ("joint",) and d.in_action_space("joint") is d
+    with pytest.raises(DatasetError, match=r"holds \['joint'\] actions, not 'ee'"):
+        d.in_action_space("ee")
+    with pytest.raises(DatasetError, match="must be 'joint' or 'ee'"):
+        d.in_action_space("torque")
+    ee = np.random.default_rng(1).normal(size=(3, 5, 20)).astype(np.float32)
+    d2 = dataclasses.replace(d, action_ee=ee, meta={**d.meta, "task_options": {"action": "joint"}})
+    back = load(save(d2, tmp_path / "d.zarr"))
+    assert back.action_spaces == ("joint", "ee") and back.meta["action_spaces"] == ["joint", "ee"]
+    np.testing.assert_array_equal(back.in_action_space("ee").action, ee)
+    assert back.in_action_space("ee").meta["task_options"]["action"] == "ee"
+    # a stale layout entry in the metadata does not override the layout written
+    d3 = dataclasses.replace(d, meta={**d.meta, "n_episodes": 99, "action_spaces": ["joint", "ee"]})
+    assert load(save(d3, tmp_path / "d3.zarr")).action_spaces == ("joint",)
+    with pytest.raises(DatasetError, match="action_ee has shape"):
+        dataclasses.replace(d, action_ee=ee[:, :2])
+    with pytest.raises(DatasetError, match="action_ee contains NaN"):
+        dataclasses.replace(d, action_ee=np.full_like(ee, np.nan))

@@ -56,6 +56,9 @@ class Demos:
       length: int32 [E], valid steps per episode.
       success: bool [E].
       meta: JSON-serialisable metadata (task, env config, seed, a task's per-episode info, ...).
+      action_ee: optional [E, T, A_ee], the same actions in the end-effector space (per
+        arm: position, rotation, opening; see ``Env.ee_action_from_joint``) when
+        ``action`` holds joint actions. :meth:`in_action_space` picks one.
     """
 
     obs: Mapping[str, np.ndarray]
@@ -63,6 +66,7 @@ class Demos:
     length: np.ndarray
     success: np.ndarray
     meta: Mapping
+    action_ee: np.ndarray | None = None
 
     def __post_init__(self):
         validate(self)
@@ -70,6 +74,33 @@ class Demos:
     @property
     def n_episodes(self) -> int:
         return int(self.action.shape[0])
+
+    @property
+    def action_spaces(self) -> tuple[str, ...]:
+        """The action spaces this dataset holds: ``("joint",)`` or ``("joint", "ee")``."""
+        return ("joint", "ee") if self.action_ee is not None else ("joint",)
+
+    def in_action_space(self, space: str) -> "Demos":
+        """These demos with ``action`` in ``space`` (``"joint"`` or ``"ee"``).
+
+        The metadata's ``task_options["action"]`` is set to ``space``, so that the env
+        rebuilt from the metadata takes actions of that space.
+
+        Raises:
+          DatasetError: the dataset does not hold actions in ``space``.
+        """
+        if space not in ("joint", "ee"):
+            raise DatasetError(f"action space must be 'joint' or 'ee', got {space!r}")
+        if space not in self.action_spaces:
+            raise DatasetError(f"this dataset holds {list(self.action_spaces)} actions, not {space!r} "
+                               f"(regenerate it with `equibim generate` to record both)")
+        if space == "joint":
+            return self
+        meta = dict(self.meta)
+        if isinstance(meta.get("task_options"), Mapping):
+            meta["task_options"] = {**meta["task_options"], "action": "ee"}
+        return dataclasses.replace(self, action=self.action_ee, action_ee=None,
+                                   meta={**meta, "action_space": "ee"})
 
     @property
     def n_steps(self) -> int:
@@ -91,6 +122,11 @@ def validate(d: Demos) -> None:
             raise DatasetError(f"obs/{k} contains NaN or inf")
     if not np.all(np.isfinite(d.action)):
         raise DatasetError("action contains NaN or inf")
+    if d.action_ee is not None:
+        if d.action_ee.ndim != 3 or d.action_ee.shape[:2] != (e, t):
+            raise DatasetError(f"action_ee has shape {d.action_ee.shape}; expected ({e}, {t}, A_ee)")
+        if not np.all(np.isfinite(d.action_ee)):
+            raise DatasetError("action_ee contains NaN or inf")
     for name, arr in (("length", d.length), ("success", d.success)):
         if arr.shape != (e,):
             raise DatasetError(f"{name} has shape {arr.shape}; expected ({e},)")
@@ -189,12 +225,17 @@ def _write(demos: Demos, root: Path) -> None:
         g.create_array(f"obs/{k}", shape=v.shape, dtype=v.dtype, chunks=(1,) + v.shape[1:])[:] = v
     g.create_array("action", shape=demos.action.shape, dtype=demos.action.dtype,
                    chunks=(1,) + demos.action.shape[1:])[:] = demos.action
+    if demos.action_ee is not None:
+        a = demos.action_ee
+        g.create_array("action_ee", shape=a.shape, dtype=a.dtype, chunks=(1,) + a.shape[1:])[:] = a
     for name, arr in (("length", demos.length.astype(np.int32)), ("success", demos.success.astype(bool))):
         g.create_array(name, shape=(e,), dtype=arr.dtype)[:] = arr
+    # The layout entries come last: metadata loaded from an older file must not override them.
     g.attrs["equibim"] = {
+        **dict(demos.meta),
         "format": FORMAT, "version": VERSION, "n_episodes": e, "n_steps": demos.n_steps,
         "obs_fields": sorted(demos.obs), "action_dim": int(demos.action.shape[-1]),
-        "horizon": int(demos.action.shape[1]), **dict(demos.meta),
+        "horizon": int(demos.action.shape[1]), "action_spaces": list(demos.action_spaces),
     }
 
 
@@ -268,6 +309,7 @@ def load(path: str | os.PathLike, expect: Mapping | None = None) -> Demos:
         demos = Demos(
             obs=obs, action=np.asarray(g["action"][:]), length=np.asarray(g["length"][:]),
             success=np.asarray(g["success"][:]), meta={k: v for k, v in meta.items()},
+            action_ee=np.asarray(g["action_ee"][:]) if "ee" in meta.get("action_spaces", ()) else None,
         )
     except DatasetError as err:
         raise DatasetError(f"{path}: {err}") from None

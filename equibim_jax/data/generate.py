@@ -50,8 +50,11 @@ def generate_demos(
       progress: show a progress bar.
       meta: extra metadata stored with the dataset.
     Returns:
-      ``(demos, stats)``: :class:`Demos` with ``obs`` [E, T, ...] and ``action`` [E, T, A],
-      and stats (attempts, successes, wall/compile times).
+      ``(demos, stats)``: :class:`Demos` with ``obs`` [E, T, ...], ``action`` [E, T, A]
+      and, for a joint-action env, ``action_ee`` [E, T, A_ee] (the same actions in the
+      end-effector space); and stats (attempts, successes, wall/compile times). The
+      metadata record which rollout indices were kept (``episode_indices``, the ``i`` of
+      ``fold_in(key, i)``) and which failed and were skipped (``skipped_indices``).
     Raises:
       RuntimeError: fewer than ``n_episodes`` successes within ``max_attempts``.
     """
@@ -59,9 +62,19 @@ def generate_demos(
         raise ValueError(f"n_episodes must be >= 1, got {n_episodes}")
     expert = make_expert(env)
     t_len = int(length or env.config.episode_length)
-    roll = jax.jit(jax.vmap(make_rollout(env, expert, length=t_len, obs=True)))
+    base = make_rollout(env, expert, length=t_len, obs=True)
+    record_ee = env.config.action == "joint"
+
+    def rollout(k):
+        final, traj = base(k)
+        if record_ee:  # the same actions in the end-effector space
+            traj = {**traj, "action_ee": env.ee_action_from_joint(traj["action"])}
+        return final, traj
+
+    roll = jax.jit(jax.vmap(rollout))
     max_attempts = max_attempts or 4 * n_episodes
     kept: list[dict] = []
+    skipped: list[int] = []
     attempts = successes = 0
     t0 = time.perf_counter()
     compile_s = None
@@ -79,13 +92,17 @@ def generate_demos(
         for b in range(chunk):
             ok = bool(succ[b, -1])
             successes += ok
-            if not (ok or keep_failures) or len(kept) >= n_episodes:
+            if len(kept) >= n_episodes:
+                continue
+            if not (ok or keep_failures):
+                skipped.append(attempts - chunk + b)
                 continue
             first = int(np.argmax(succ[b])) if ok else t_len - 1
             n = min(t_len, first + 1 + tail)
             kept.append({
                 "obs": {k: v[b] for k, v in traj["obs"].items()}, "action": traj["action"][b],
-                "length": n, "success": ok,
+                "action_ee": traj["action_ee"][b] if record_ee else None,
+                "length": n, "success": ok, "index": attempts - chunk + b,
             })
             bar.update(1)
         bar.set_postfix(success_rate=f"{successes / attempts:.2f}")
@@ -102,11 +119,16 @@ def generate_demos(
         action=np.stack([k["action"][:horizon] for k in kept]).astype(np.float32),
         length=np.array([k["length"] for k in kept], np.int32),
         success=np.array([k["success"] for k in kept]),
-        meta={"task": env.task, "task_options": config_to_dict(env.task_options), **(meta or {})},
+        meta={"task": env.task, "task_options": config_to_dict(env.task_options),
+              "episode_indices": [k["index"] for k in kept], "skipped_indices": skipped,
+              "attempts": attempts, "action_space": env.config.action, **(meta or {})},
+        action_ee=(np.stack([k["action_ee"][:horizon] for k in kept]).astype(np.float32)
+                   if record_ee else None),
     )
     wall = time.perf_counter() - t0
     stats = {"attempts": attempts, "successes": successes, "success_rate": successes / attempts,
-             "wall_s": wall, "first_chunk_s_incl_compile": compile_s, "kept": len(kept)}
+             "wall_s": wall, "first_chunk_s_incl_compile": compile_s, "kept": len(kept),
+             "skipped": len(skipped)}
     return demos, stats
 
 

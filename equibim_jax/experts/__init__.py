@@ -21,7 +21,7 @@ from typing import Callable
 
 import jax
 
-from equibim_jax.experts.place_empty_cup import Expert
+from equibim_jax.experts._waypoints import Expert
 from equibim_jax.sim.env import Env, State
 
 __all__ = ["Expert", "make_expert", "make_rollout"]

@@ -1,9 +1,9 @@
 """A one-arm pick-and-place script as a pure-JAX, vmappable waypoint state machine.
 
-Task experts (``stamp_seal``, ``move_can_pot``) supply a *plan*: a pure function of the
-initial env state that says which arm acts, where its end effector grasps the object and
-where it releases it. :func:`make_pick_place_expert` turns the plan into an
-:class:`~equibim_jax.experts.place_empty_cup.Expert` that runs, one phase per segment:
+Task experts (``place_empty_cup``, ``stamp_seal``, ``move_can_pot``) supply a *plan*: a
+pure function of the initial env state that says which arm acts, where its end effector
+grasps the object and where it releases it. :func:`make_pick_place_expert` turns the plan into an
+:class:`~equibim_jax.experts._waypoints.Expert` that runs, one phase per segment:
 
     0 approach  home pose -> ``pregrasp_height`` above the grasp point, gripper opening to
                 1 and turning to point down
@@ -17,7 +17,8 @@ where it releases it. :func:`make_pick_place_expert` turns the plan into an
     8 retreat   straight up by ``retreat_height``
     9 hold      (to the end of the episode)
 
-The carry height is ``carry_lift`` above the higher of the grasp and release points. The
+The carry height is ``carry_lift`` above the higher of the grasp and release points, unless
+the plan sets its own (``PickPlacePlan.carry_z``). The
 waypoints run on the one-arm waypoint machinery of :mod:`equibim_jax.experts._waypoints`
 (shared with the press-type experts): smoothstep segments, warm-started
 damped-least-squares IK each control step, the other arm holding its home joints, the
@@ -41,11 +42,13 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from equibim_jax.experts._waypoints import R_DOWN_6D, make_waypoint_expert
-from equibim_jax.experts.place_empty_cup import PHASES, Expert
+from equibim_jax.experts._waypoints import R_DOWN_6D, Expert, make_waypoint_expert
 from equibim_jax.sim.env import Env, State
 
 __all__ = ["PHASES", "PickPlaceConfig", "PickPlacePlan", "make_pick_place_expert"]
+
+PHASES = ("approach", "descend", "close", "settle", "lift", "transfer", "lower", "release",
+          "retreat", "hold")
 
 
 class PickPlacePlan(NamedTuple):
@@ -55,11 +58,14 @@ class PickPlacePlan(NamedTuple):
       grasp: [3] ee (pad centre) position at which the gripper closes.
       place: [3] ee position at which it opens again.
       left: [] bool, whether the left arm acts.
+      carry_z: optional [] ee height of the lift and transfer; None: ``carry_lift`` above
+        the higher of ``grasp`` and ``place``.
     """
 
     grasp: jax.Array
     place: jax.Array
     left: jax.Array
+    carry_z: jax.Array | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -116,7 +122,7 @@ def make_pick_place_expert(env: Env, plan: Callable[[State], PickPlacePlan],
       config: :class:`PickPlaceConfig` (or a subclass).
 
     Returns:
-      :class:`~equibim_jax.experts.place_empty_cup.Expert` with ``init(state)`` and
+      :class:`~equibim_jax.experts._waypoints.Expert` with ``init(state)`` and
       ``act(expert_state, state) -> (expert_state, action [2 * (n_arm + 1)])``, pure and
       vmappable.
     """
@@ -126,7 +132,8 @@ def make_pick_place_expert(env: Env, plan: Callable[[State], PickPlacePlan],
         """The 9 waypoints [9, 10] after the start pose, and whether the left arm acts."""
         pl = plan(state)
         grasp, place = pl.grasp, pl.place
-        carry_z = jnp.maximum(grasp[2], place[2]) + config.carry_lift
+        carry_z = (jnp.maximum(grasp[2], place[2]) + config.carry_lift
+                   if pl.carry_z is None else pl.carry_z)
         p = lambda xy, z: jnp.concatenate([xy, jnp.reshape(z, (1,))])
         pos = jnp.stack([
             p(grasp[:2], grasp[2] + config.pregrasp_height),    # above the object

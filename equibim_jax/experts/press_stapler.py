@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 
 from equibim_jax.experts._waypoints import R_DOWN_6D, make_waypoint_expert, pad_tip_below_ee
-from equibim_jax.experts.place_empty_cup import Expert
+from equibim_jax.experts._waypoints import Expert
 from equibim_jax.sim.env import Env, State
 from equibim_jax.tasks.press_stapler import PressStapler
 

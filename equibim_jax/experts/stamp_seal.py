@@ -17,7 +17,7 @@ import dataclasses
 import jax.numpy as jnp
 
 from equibim_jax.experts.pick_place import PickPlaceConfig, PickPlacePlan, make_pick_place_expert
-from equibim_jax.experts.place_empty_cup import Expert
+from equibim_jax.experts._waypoints import Expert
 from equibim_jax.sim.env import Env, State
 from equibim_jax.tasks.stamp_seal import StampSeal
 
@@ -43,7 +43,7 @@ def make_expert(env: Env, config: SealExpertConfig = SealExpertConfig()) -> Expe
       config: :class:`SealExpertConfig`.
 
     Returns:
-      :class:`~equibim_jax.experts.place_empty_cup.Expert`: ``init(state)`` and
+      :class:`~equibim_jax.experts._waypoints.Expert`: ``init(state)`` and
       ``act(expert_state, state) -> (expert_state, action [14])``, pure and vmappable.
     """
     scene = env.scene

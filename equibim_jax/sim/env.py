@@ -40,7 +40,7 @@ from mujoco import mjx
 
 from equibim_jax._batching import chunked_vmap
 from equibim_jax.sim import robots
-from equibim_jax.sim.ik import make_ik
+from equibim_jax.sim.ik import make_ee_fk, make_ik, mat_to_quat
 from equibim_jax.sim.render import CameraConfig, PointCloudConfig, make_renderer
 from equibim_jax.symmetry import (
     JointMap,
@@ -263,6 +263,7 @@ class Env:
         self._ik = (
             make_ik(model, self.info, iterations=config.ik_iterations) if config.action == "ee" else None
         )
+        self._fk = make_ee_fk(model, self.info)
         self.obs_symmetry, self.action_symmetry = self._build_symmetries()
 
     # ------------------------------------------------------------------ sizes & maps
@@ -319,7 +320,37 @@ class Env:
         }
         obs_sym = Symmetry({k: ops[k] for k in self.config.obs})
         act_sym = joint if self.config.action == "joint" else ee
+        self.joint_action_symmetry, self.ee_action_symmetry = joint, ee
         return obs_sym, act_sym
+
+    def ee_action_from_joint(self, action: jax.Array) -> jax.Array:
+        """The end-effector action that a joint action commands.
+
+        Args:
+          action: joint action [..., 2 * (n_arm + 1)] (per arm: joint targets, opening).
+        Returns:
+          [..., 2 * (3 + R + 1)]: per arm, the ee-site pose of the commanded joints
+          (forward kinematics; position, then 6D rotation or quaternion as
+          ``config.rotation``) and the same gripper opening; the action layout of
+          ``action="ee"``. ``ee_action_symmetry`` of the result is the result for
+          ``joint_action_symmetry(action)``.
+        """
+        action = jnp.asarray(action)
+        n = self.info.n_arm
+        if action.shape[-1] != 2 * (n + 1):
+            raise ValueError(f"joint actions have {2 * (n + 1)} entries, got shape {action.shape}")
+        per_arm = action.reshape(action.shape[:-1] + (2, n + 1))
+        q0 = jnp.asarray(self.home_qpos, action.dtype)
+
+        def one(a):  # [2, n + 1] -> [2, 3 + R + 1]
+            q = q0.at[self.arm_qadr.reshape(-1)].set(a[:, :n].reshape(-1))
+            pos, mat = self._fk(q)
+            rot = matrix_to_rot6d(mat) if self.config.rotation == "6d" else mat_to_quat(mat)
+            return jnp.concatenate([pos, rot, a[:, n:]], axis=-1)
+
+        flat = per_arm.reshape((-1, 2, n + 1))
+        out = jax.vmap(one)(flat)
+        return out.reshape(action.shape[:-1] + (2 * (3 + self.rot_dim + 1),))
 
     def symmetry_ops(self, fields: tuple[str, ...], action_key: str = "action") -> dict:
         """``S`` in raw units as ``{field: op}`` for the observation ``fields`` and the action
@@ -375,8 +406,6 @@ class Env:
         if self.config.rotation == "6d":
             rot = matrix_to_rot6d(mat)
         else:
-            from equibim_jax.sim.ik import mat_to_quat
-
             rot = mat_to_quat(mat)
         return jnp.concatenate([pos, rot], axis=-1)
 
@@ -447,10 +476,9 @@ class Env:
 
         ``observe=False`` (a Python bool) skips the observation: the returned state keeps
         ``state.obs`` (stale) while physics, reward, success and metrics are computed as
-        usual. Observing the point cloud is a quarter to a third of a step's cost (1.61 ms
-        per env-step against 1.19 ms with ``observe=False``, 32 envs on 2 CPU cores;
-        ``benchmarks/obs_cost.py``), so a closed-loop rollout uses it for the steps whose
-        observations its policy never reads.
+        usual. Rendering is a sizeable part of a step's cost (``benchmarks/obs_cost.py``
+        measures it), so a closed-loop rollout uses it for the steps whose observations its
+        policy never reads.
         """
         action = jnp.asarray(action)
         if action.shape != (self.action_size,):
