@@ -59,6 +59,9 @@ rebuilt from the arguments the JSON records where it records them.
 """
 
 WHAT = {
+    "demos": "demo generation per task: 50 scripted-expert demos with a rendered 64x64 head-camera "
+             "image every step; compile time, demos/s, env-steps/s, and physics steps/s against "
+             "MuJoCo C on the same model in the same run",
     "sim": "MJX physics steps per second at several batch sizes, against MuJoCo C and "
            "`mujoco.rollout` in the same run; frames per second of the ray-cast renderer",
     "obs_cost": "what observing costs inside `env.step`: the same physics with the point "
@@ -212,6 +215,8 @@ def kind_of(d: dict) -> str | None:
     """Which benchmark wrote ``d`` (by its structure), or None if unknown."""
     if "mjx_steps_per_s" in d:
         return "sim"
+    if "tasks" in d and str(d.get("meta", {}).get("command", "")).startswith("python benchmarks/demos.py"):
+        return "demos"
     if "xla_tuning_on" in d and "xla_tuning_off" in d:
         return "train_compare"
     if "variants" in d and "matmul_2048_fp32" in d:
@@ -226,9 +231,9 @@ def kind_of(d: dict) -> str | None:
     return None
 
 
-SCRIPT = {"sim": "sim.py", "obs_cost": "obs_cost.py", "rollout": "rollout.py",
+SCRIPT = {"demos": "demos.py", "sim": "sim.py", "obs_cost": "obs_cost.py", "rollout": "rollout.py",
           "train": "train.py", "train_compare": "train.py", "layers": "layers.py"}
-ORDER = ["sim", "obs_cost", "rollout", "train_compare", "train", "layers"]
+ORDER = ["sim", "demos", "obs_cost", "rollout", "train_compare", "train", "layers"]
 
 
 def _cmd_block(cmd: str, note: str = "") -> str:
@@ -288,6 +293,30 @@ def section_sim(name: str, d: dict) -> str:
         parts.append("Targets: " + "; ".join(targets) + ".")
     parts.append(f"Recorded: {env}. Model: {model}.")
     return "\n\n".join(parts)
+
+
+def section_demos(name: str, d: dict) -> str:
+    meta = d.get("meta", {})
+    rows = []
+    for task, r in sorted(d["tasks"].items()):
+        rows.append([_code(task), _int(r["demos"]), f"{r['kept']}/{r['attempts']}", _int(r["rollout_length"]),
+                     _f(r["compile_s"], 1), _f(r["generate_s"], 1), _f(r["demos_per_s"], 2),
+                     _int(round(r["env_steps_per_s"])), _int(round(r["physics_steps_per_s"])),
+                     _int(round(r["mujoco_c_steps_per_s"])), _ratio(r["ratio_to_mujoco_c"])])
+    table = _table(["task", "demos", "kept / simulated", "steps per rollout", "compile (s)",
+                    "generate (s)", "demos/s", "env-steps/s", "physics steps/s", "MuJoCo C steps/s",
+                    "ratio to MuJoCo C"], rows)
+    any_r = next(iter(d["tasks"].values()))
+    setup = (f"Observations {', '.join(_code(o) for o in any_r['obs'])} ({any_r['image_size']}x"
+             f"{any_r['image_size']} image) rendered at every control step, {any_r['chunk']} episodes "
+             f"per compiled call. \"generate\" is a whole `generate_demos` call on the compiled program "
+             f"(every simulated episode, the host copy and the bookkeeping); env-steps count every "
+             f"simulated episode's control steps; MuJoCo C is one env on one core. The target is 50 "
+             f"demos of any task in at most 60 s after compilation.")
+    env = _kv([("cpus", meta.get("cpus")), ("backend", meta.get("backend")),
+               ("versions", _versions({k: meta[k] for k in ("jax", "mujoco") if k in meta}))])
+    return "\n\n".join([f"## Demo generation: `{name}`", _cmd_block(meta.get("command", "")), setup, table,
+                         f"Recorded: {env}."])
 
 
 def section_obs_cost(name: str, d: dict) -> str:
@@ -474,7 +503,7 @@ def section_layers(name: str, d: dict) -> str:
                                         "the file was committed."), table, f"Recorded: {env}."])
 
 
-SECTIONS = {"sim": section_sim, "obs_cost": section_obs_cost, "rollout": section_rollout,
+SECTIONS = {"demos": section_demos, "sim": section_sim, "obs_cost": section_obs_cost, "rollout": section_rollout,
             "train": section_train, "train_compare": section_train_compare, "layers": section_layers}
 NOTES_AFTER = {"sim": NOTES_SIM, "rollout": NOTES_OBS, "layers": NOTES_TRAIN}
 
@@ -495,7 +524,7 @@ def render(results: pathlib.Path = RESULTS) -> str:
     parts = [INTRO.format(index=index).rstrip("\n")]
 
     # Each kind's notes come after the last section they explain ("why" prose groups).
-    groups = {"sim": "sim", "obs_cost": "rollout", "rollout": "rollout", "train_compare": "layers",
+    groups = {"sim": "sim", "demos": "demos", "obs_cost": "rollout", "rollout": "rollout", "train_compare": "layers",
               "train": "layers", "layers": "layers"}
     present = {k for _, k, _ in known}
     for i, (name, kind, d) in enumerate(known):

@@ -16,7 +16,8 @@ import tyro
 
 from equibim_jax.config import ConfigError, EvalConfig, config_from_dict, find_config, load_config
 
-COMMANDS = ("demo", "generate", "train", "eval", "equivariance", "symmetry", "robots", "tasks", "policies")
+COMMANDS = ("demo", "generate", "experts", "pictures", "train", "eval", "equivariance", "symmetry", "robots", "tasks",
+            "policies")
 
 
 def _command_line(argv: list[str]) -> str:
@@ -297,10 +298,85 @@ def _train(args: list[str]) -> None:
     cmd.run()
 
 
+@dataclasses.dataclass
+class Experts:
+    """Success rate of every task's scripted expert over seeded starts, with 95 % intervals.
+
+    Writes `{task: {"success", "ci95", "episodes", ...}}` to --out after each task and
+    skips the tasks --out already holds with the same settings (a rerun resumes)."""
+
+    episodes: int = 200
+    """Starts per task (keys `jax.random.split(jax.random.key(seed), episodes)`)."""
+    out: str | None = None
+    """JSON file to write (and resume from)."""
+    tasks: tuple[str, ...] = ()
+    """Tasks to run (default: every registered task with an expert)."""
+    seed: int = 2024
+    batch: int = 25
+    """Episodes per compiled call (at most 32 on the CPU)."""
+
+    def run(self) -> None:
+        from equibim_jax.evaluation.experts import expert_table, markdown_table
+        from equibim_jax.tasks import task_entry, task_names
+
+        tasks = self.tasks or tuple(n for n in task_names() if task_entry(n).expert is not None)
+        try:
+            for t in tasks:
+                if task_entry(t).expert is None:  # task_entry raises on unknown names
+                    raise ValueError(f"task {t!r} has no scripted expert")
+            if self.episodes < 1:
+                raise ValueError(f"--episodes must be >= 1, got {self.episodes}")
+            results = expert_table(tasks, self.out, self.episodes, self.seed, self.batch)
+        except ConfigError:
+            raise
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
+        print(markdown_table(results))
+        if self.out:
+            print(f"wrote {self.out}")
+
+
+@dataclasses.dataclass
+class Pictures:
+    """Head-camera pictures of every task's expert: a grid of first and last frames of an
+    episode and of its mirror image (OUT/tasks.png), and one GIF per task (OUT/gifs/)."""
+
+    out: str = "docs"
+    """Folder for tasks.png and gifs/."""
+    tasks: tuple[str, ...] = ()
+    """Tasks to show (default: every registered task with an expert)."""
+    seed: int = 0
+    size: int = 128
+    """Frame side in pixels."""
+    cache: str = "results/pictures_cache"
+    """Folder keeping each task's frames, so an interrupted run resumes."""
+
+    def run(self) -> None:
+        from equibim_jax.evaluation.pictures import make_pictures
+        from equibim_jax.tasks import task_entry, task_names
+
+        try:
+            tasks = self.tasks or tuple(n for n in task_names() if task_entry(n).expert is not None)
+            for t in tasks:
+                if task_entry(t).expert is None:
+                    raise ValueError(f"task {t!r} has no scripted expert")
+            if self.size < 16:
+                raise ValueError(f"--size must be at least 16 pixels, got {self.size}")
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
+        summary = make_pictures(tasks, self.out, self.seed, self.size, self.cache)
+        for t, s in summary.items():
+            print(f"{t}: episode {'success' if s['success'] else 'FAILURE'}, mirrored "
+                  f"{'success' if s['mirror_success'] else 'FAILURE'}; {s['gif']} ({s['gif_bytes'] / 1e3:.0f} kB)")
+        print(f"wrote {self.out}/tasks.png")
+
+
 def _usage() -> str:
     return ("usage: equibim COMMAND [--help] [flags]\n\ncommands:\n"
             "  demo          the main experiment (settings from tasks/place_empty_cup.json)\n"
             "  generate      scripted-expert demos of a task into a dataset\n"
+            "  experts       success rates of the tasks' scripted experts (JSON, resumable)\n"
+            "  pictures      task pictures: a frame grid (tasks.png) and one GIF per task\n"
             "  train         train a policy on a dataset (with L_sym)\n"
             "  eval          closed-loop success on both sides of a trained run\n"
             "  equivariance  open-loop equivariance and action errors of trained runs\n"
@@ -324,6 +400,10 @@ def main(argv: list[str] | None = None) -> None:
             _train(args)
         elif cmd == "generate":
             tyro.cli(Generate, args=args, prog="equibim generate").run()
+        elif cmd == "experts":
+            tyro.cli(Experts, args=args, prog="equibim experts").run()
+        elif cmd == "pictures":
+            tyro.cli(Pictures, args=args, prog="equibim pictures").run()
         elif cmd == "eval":
             tyro.cli(Eval, args=args, prog="equibim eval").run(command)
         elif cmd == "equivariance":

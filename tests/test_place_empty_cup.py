@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
-from equibim_jax._batching import chunked_vmap
 from equibim_jax.experts import make_expert, make_rollout
 from equibim_jax.tasks import make_env, make_scene, task_entry, task_names, task_options
 from equibim_jax.tasks.place_empty_cup import PlaceEmptyCup, held_opening
@@ -219,30 +218,3 @@ def test_expert_mirror_equivariance():
     assert np.abs(acts_m - acts).max() > 0.1  # the other arm acted: the check is not vacuous
     assert act_err < 1e-3
     assert cup_err < 5e-3
-
-
-@pytest.mark.slow
-def test_expert_success_rate_200_seeds():
-    env = _env()
-    expert = make_expert(env)
-    roll = make_rollout(env, expert, length=expert.horizon, obs=False)
-
-    @jax.jit
-    def run(keys):
-        final, _ = chunked_vmap(roll, chunk=25)(keys)  # <= 32 per vmap: see _batching.py
-        return final.info["success"], final.info["side"]
-
-    # README: "the expert succeeds on 200 of 200 seeds".
-    n_seeds = 200
-    keys = jax.random.split(jax.random.key(2024), n_seeds)
-    out = [run(keys[i : i + 50]) for i in range(0, n_seeds, 50)]
-    success = np.concatenate([np.asarray(o[0]) for o in out])
-    side = np.concatenate([np.asarray(o[1]) for o in out])
-    assert success.shape == (n_seeds,)
-    print(f"\n{n_seeds} seeds: success {success.mean():.3f}; left {success[side > 0].mean():.3f} "
-          f"({(side > 0).sum()}), right {success[side < 0].mean():.3f} ({(side < 0).sum()})")
-    failed = np.flatnonzero(~success.astype(bool))
-    assert failed.size == 0, (
-        f"expert failed on {failed.size} of {n_seeds} seeds (README claims {n_seeds} of {n_seeds}): "
-        f"indices {failed.tolist()} of jax.random.split(jax.random.key(2024), {n_seeds})"
-    )

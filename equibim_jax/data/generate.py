@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -22,6 +23,38 @@ from equibim_jax.sim.env import Env
 from equibim_jax.tasks import make_expert
 
 
+def make_demo_rollout(env: Env, length: int) -> Callable:
+    """The compiled batch rollout that :func:`generate_demos` runs.
+
+    Returns:
+      ``roll(keys [B]) -> (final_state, traj)``, ``jit(vmap(...))`` of the task's expert in
+      ``env`` for ``length`` steps; ``traj`` holds ``obs`` (dict of [B, T, ...]),
+      ``action`` [B, T, A], ``success`` [B, T] (latched) and, for a joint-action env,
+      ``action_ee`` [B, T, A_ee]. Build it once and pass it to :func:`generate_demos` to
+      reuse the compiled program.
+    """
+    expert = make_expert(env)
+    base = make_rollout(env, expert, length=int(length), obs=True)
+    record_ee = env.config.action == "joint"
+
+    def rollout(k):
+        final, traj = base(k)
+        if record_ee:  # the same actions in the end-effector space
+            traj = {**traj, "action_ee": env.ee_action_from_joint(traj["action"])}
+        return final, traj
+
+    roll = jax.jit(jax.vmap(rollout))
+    roll.length = int(length)  # type: ignore[attr-defined]
+    return roll
+
+
+def default_length(env: Env, tail: int = 10) -> int:
+    """Rollout length of demo generation: the expert's script plus ``2 * tail`` steps,
+    capped at the env's ``episode_length``. Episodes are cut ``tail`` steps after their
+    first success, so simulating the rest of the step limit would be wasted."""
+    return int(min(env.config.episode_length, make_expert(env).horizon + 2 * tail))
+
+
 def generate_demos(
     env: Env,
     key: jax.Array,
@@ -33,6 +66,7 @@ def generate_demos(
     tail: int = 10,
     progress: bool = True,
     meta: dict | None = None,
+    rollout: Callable | None = None,
 ) -> tuple[Demos, dict]:
     """Roll out the task's scripted expert until ``n_episodes`` successes are collected.
 
@@ -42,13 +76,14 @@ def generate_demos(
       key: PRNG key; episode ``i`` uses ``fold_in(key, i)``, so the result is a pure
         function of the key and the arguments.
       n_episodes: successful episodes to keep.
-      length: control steps per rollout (default: the env's ``episode_length``).
+      length: control steps per rollout (default: :func:`default_length`).
       chunk: episodes per compiled batch.
       keep_failures: keep failed episodes too (marked ``success=False``).
       max_attempts: stop after this many rollouts (default ``4 * n_episodes``).
       tail: steps kept after the first success (the expert's release and retreat).
       progress: show a progress bar.
       meta: extra metadata stored with the dataset.
+      rollout: a :func:`make_demo_rollout` of ``env`` to reuse (its length wins).
     Returns:
       ``(demos, stats)``: :class:`Demos` with ``obs`` [E, T, ...], ``action`` [E, T, A]
       and, for a joint-action env, ``action_ee`` [E, T, A_ee] (the same actions in the
@@ -60,18 +95,11 @@ def generate_demos(
     """
     if n_episodes < 1:
         raise ValueError(f"n_episodes must be >= 1, got {n_episodes}")
-    expert = make_expert(env)
-    t_len = int(length or env.config.episode_length)
-    base = make_rollout(env, expert, length=t_len, obs=True)
+    if rollout is None:
+        rollout = make_demo_rollout(env, int(length or default_length(env, tail)))
+    roll = rollout
+    t_len = int(roll.length)
     record_ee = env.config.action == "joint"
-
-    def rollout(k):
-        final, traj = base(k)
-        if record_ee:  # the same actions in the end-effector space
-            traj = {**traj, "action_ee": env.ee_action_from_joint(traj["action"])}
-        return final, traj
-
-    roll = jax.jit(jax.vmap(rollout))
     max_attempts = max_attempts or 4 * n_episodes
     kept: list[dict] = []
     skipped: list[int] = []
