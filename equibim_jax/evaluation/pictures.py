@@ -94,8 +94,9 @@ def task_gif(frames: dict, out: str | Path, every: int = 5, fps: int = 12, max_b
 
 
 def task_grid(frames: dict[str, dict], out: str | Path, dpi: int = 100) -> Path:
-    """A grid of first and last frames: one row per task, columns episode start, episode
-    end, mirrored start, mirrored end. Written atomically as PNG.
+    """A grid of first and last frames: per task four panels, episode start, episode end,
+    mirrored start, mirrored end (tasks in two side-by-side columns when there are more
+    than three). Written atomically as PNG.
 
     Args:
       frames: ``{task: expert_frames(task, ...)}``.
@@ -110,13 +111,19 @@ def task_grid(frames: dict[str, dict], out: str | Path, dpi: int = 100) -> Path:
 
     tasks = list(frames)
     cols = ("start", "end", "mirrored start", "mirrored end")
-    fig, axes = plt.subplots(len(tasks), 4, figsize=(4 * 1.6, len(tasks) * 1.7), squeeze=False)
-    for r, task in enumerate(tasks):
+    groups = 2 if len(tasks) > 3 else 1  # tasks side by side, four columns each
+    rows = -(-len(tasks) // groups)
+    fig, axes = plt.subplots(rows, 4 * groups, figsize=(4 * groups * 1.6, rows * 1.75), squeeze=False)
+    for ax in axes.flat:
+        ax.axis("off")
+    for i, task in enumerate(tasks):
+        r, g = i % rows, i // rows
         f = frames[task]
         imgs = (f["frames"][0], f["frames"][-1], f["mirror_frames"][0], f["mirror_frames"][-1])
         ok = (None, f["success"], None, f["mirror_success"])
         for c, (img, s) in enumerate(zip(imgs, ok)):
-            ax = axes[r, c]
+            ax = axes[r, 4 * g + c]
+            ax.axis("on")
             ax.imshow(img)
             ax.set_xticks([])
             ax.set_yticks([])
