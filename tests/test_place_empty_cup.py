@@ -117,6 +117,7 @@ def test_initial_distribution():
         assert np.all(np.asarray(inf["side"]) == sgn)
 
 
+@pytest.mark.slow  # compiles MJX programs; the default suite is at its time budget
 def test_point_cloud_sees_cup_and_coaster_and_mirrors():
     env = make_env("place_empty_cup", side="both", obs=("qpos", "point_cloud"), n_points=64)
     s = jax.jit(env.reset)(jax.random.key(5))
@@ -186,6 +187,7 @@ def test_success_predicate_cases():
 
 
 # ---------------------------------------------------------------------------- expert
+@pytest.mark.slow  # compiles MJX programs; the default suite is at its time budget
 def test_expert_success_both_sides():
     s0, success, traj = _rollouts()
     side = np.asarray(s0.info["side"])
@@ -202,6 +204,7 @@ def test_expert_success_both_sides():
     assert np.all(np.isfinite(traj["action"]))
 
 
+@pytest.mark.slow  # compiles MJX programs; the default suite is at its time budget
 def test_expert_mirror_equivariance():
     """Mirrored start -> mirrored actions (to IK round-off) and mirrored cup trajectory."""
     env = _env()
