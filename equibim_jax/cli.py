@@ -310,23 +310,31 @@ class Experts:
     out: str | None = None
     """JSON file to write (and resume from)."""
     tasks: tuple[str, ...] = ()
-    """Tasks to run (default: every registered task with an expert)."""
+    """Tasks to run, each `task` or `task:option=value,...` (default: every registered task
+    with an expert, then the robotwin_faithful=True variants)."""
     seed: int = 2024
     batch: int = 25
     """Episodes per compiled call (at most 32 on the CPU)."""
 
     def run(self) -> None:
-        from equibim_jax.evaluation.experts import expert_table, markdown_table
-        from equibim_jax.tasks import task_entry, task_names
+        from equibim_jax.evaluation.experts import default_specs, expert_table, markdown_table, parse_task_spec
+        from equibim_jax.tasks import make_scene, task_entry, task_options
 
-        tasks = self.tasks or tuple(n for n in task_names() if task_entry(n).expert is not None)
         try:
-            for t in tasks:
-                if task_entry(t).expert is None:  # task_entry raises on unknown names
-                    raise ValueError(f"task {t!r} has no scripted expert")
+            specs = self.tasks or tuple(default_specs())
+            for spec in specs:
+                task, opts = parse_task_spec(spec)
+                if task_entry(task).expert is None:  # task_entry raises on unknown names
+                    raise ValueError(f"task {task!r} has no scripted expert")
+                bad = sorted(set(opts) - set(task_options(task)))
+                if bad:
+                    raise ValueError(f"unknown option(s) {bad} for task {task!r}; valid options: "
+                                     f"{list(task_options(task))}")
+                # bad values of the scene's options fail here, before any compile
+                make_scene(task, **{k: v for k, v in opts.items() if k in task_entry(task).scene_fields})
             if self.episodes < 1:
                 raise ValueError(f"--episodes must be >= 1, got {self.episodes}")
-            results = expert_table(tasks, self.out, self.episodes, self.seed, self.batch)
+            results = expert_table(specs, self.out, self.episodes, self.seed, self.batch)
         except ConfigError:
             raise
         except ValueError as e:

@@ -34,10 +34,15 @@ def test_table_writes_json_and_resumes(tmp_path, monkeypatch, capsys):
     main(["experts", "--episodes", "12", "--tasks", "click_bell", "--out", str(out)])
     assert calls[-1] == "click_bell" and json.loads(out.read_text())["click_bell"]["episodes"] == 12
     assert json.loads(out.read_text())["stamp_seal"]["episodes"] == 10  # kept
-    # with no --tasks every task with an expert is run
+    # with no --tasks every task with an expert is run, then the robotwin_faithful variants
     calls.clear()
-    main(["experts", "--episodes", "3"])
-    assert calls == [n for n in task_names() if task_entry(n).expert is not None] and len(calls) >= 5
+    main(["experts", "--episodes", "3", "--out", str(tmp_path / "all.json")])
+    names = [n for n in task_names() if task_entry(n).expert is not None]
+    faithful = [n for n in names if "robotwin_faithful" in task_entry(n).scene_fields]
+    assert calls == names + faithful and len(names) >= 8 and len(faithful) == 2
+    d = json.loads((tmp_path / "all.json").read_text())
+    assert d["handover_block:robotwin_faithful=True"]["options"] == {"robotwin_faithful": "True"}
+    assert "| `handover_block`, `robotwin_faithful=True` |" in capsys.readouterr().out
 
 
 def test_bad_input(tmp_path, monkeypatch, capsys):
@@ -48,6 +53,15 @@ def test_bad_input(tmp_path, monkeypatch, capsys):
     with pytest.raises(SystemExit):
         main(["experts", "--episodes", "0", "--tasks", "click_bell"])
     assert "--episodes must be >= 1" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["experts", "--tasks", "click_bell:side"])
+    assert "options must be option=value" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["experts", "--tasks", "click_bell:colour=red"])
+    assert "unknown option(s) ['colour']" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["experts", "--tasks", "click_bell:side=middle"])
+    assert "side must be one of" in capsys.readouterr().err
     bad = tmp_path / "bad.json"
     bad.write_text("{not json")
     with pytest.raises(SystemExit):

@@ -191,5 +191,6 @@ def test_option_strings_are_parsed_by_field_type():
     assert _coerce("r", tuple[float, float] | None, "0.1,0.2") == (0.1, 0.2)
     assert _coerce("r", tuple[float, float] | None, "none") is None
     assert _coerce("n", int, "64") == 64
+    assert _coerce("b", bool, "True") is True and _coerce("b", bool, "false") is False
     with pytest.raises(ValueError, match="not a valid"):
         _coerce("n", int, "sixty")

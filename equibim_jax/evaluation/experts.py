@@ -23,7 +23,33 @@ from tqdm.auto import tqdm
 from equibim_jax._io import atomic_write_json
 from equibim_jax.evaluation.stats import wilson_interval
 
-__all__ = ["expert_success", "expert_table", "markdown_table"]
+__all__ = ["expert_success", "expert_table", "markdown_table", "parse_task_spec", "default_specs"]
+
+
+def parse_task_spec(spec: str) -> tuple[str, dict[str, str]]:
+    """``"task"`` or ``"task:option=value,option=value"`` -> (task, options).
+
+    Raises:
+      ValueError: a malformed option (no ``=``).
+    """
+    task, _, rest = spec.partition(":")
+    options = {}
+    for item in filter(None, (x.strip() for x in rest.split(","))):
+        key, eq, value = item.partition("=")
+        if not eq or not key.strip():
+            raise ValueError(f"task spec {spec!r}: options must be option=value, got {item!r}")
+        options[key.strip()] = value.strip()
+    return task.strip(), options
+
+
+def default_specs() -> list[str]:
+    """Every registered task with an expert, then the ``robotwin_faithful=True`` variant of
+    each task that has that option."""
+    from equibim_jax.tasks import task_entry, task_names
+
+    names = [n for n in task_names() if task_entry(n).expert is not None]
+    return names + [f"{n}:robotwin_faithful=True" for n in names
+                    if "robotwin_faithful" in task_entry(n).scene_fields]
 
 
 def expert_success(task: str, episodes: int = 200, seed: int = 2024, batch: int = 25,
@@ -112,17 +138,16 @@ def _jsonable(v):
 
 
 def expert_table(tasks: Iterable[str], out: str | Path | None, episodes: int = 200, seed: int = 2024,
-                 batch: int = 25, options: Mapping[str, Mapping[str, Any]] | None = None,
-                 progress: bool = True) -> dict:
+                 batch: int = 25, progress: bool = True) -> dict:
     """:func:`expert_success` for each of ``tasks``; results saved to ``out`` as they finish.
 
     Args:
-      tasks: task names.
-      out: JSON file ``{task: result}``, or None. Tasks it already holds with the same
+      tasks: task specs, ``"task"`` or ``"task:option=value,..."`` (:func:`parse_task_spec`);
+        results are keyed by the spec.
+      out: JSON file ``{spec: result}``, or None. Tasks it already holds with the same
         ``episodes``, ``seed`` and options are skipped (an interrupted run resumes); the
         file is rewritten atomically after each task.
       episodes, seed, batch, progress: as :func:`expert_success`.
-      options: per-task options, ``{task: {option: value}}``.
 
     Returns:
       ``{task: result}`` for every task asked for.
@@ -139,24 +164,26 @@ def expert_table(tasks: Iterable[str], out: str | Path | None, episodes: int = 2
         if not isinstance(results, dict):
             raise ValueError(f"{out} is not a JSON object of expert results; move it away")
     want: dict = {}
-    for task in tasks:
-        opts = dict((options or {}).get(task, {}))
-        old = results.get(task)
+    for spec in tasks:
+        task, opts = parse_task_spec(spec)
+        old = results.get(spec)
         same = (isinstance(old, dict) and old.get("episodes") == episodes and old.get("seed") == seed
                 and old.get("options", {}) == {k: _jsonable(v) for k, v in opts.items()})
         if not same:
-            results[task] = expert_success(task, episodes, seed, batch, opts, progress)
+            results[spec] = expert_success(task, episodes, seed, batch, opts, progress)
             if out is not None:
                 atomic_write_json(out, results)
-        want[task] = results[task]
+        want[spec] = results[spec]
     return want
 
 
 def markdown_table(results: Mapping[str, Mapping]) -> str:
     """A Markdown table of :func:`expert_table` results: task, success, 95 % CI, episodes."""
-    lines = ["| task | expert success | 95 % CI | episodes |", "|---|---|---|---|"]
-    for task, r in results.items():
+    lines = ["| task | expert success | 95 % CI | steps per episode |", "|---|---|---|---|"]
+    for spec, r in results.items():
         lo, hi = r["ci95"]
-        lines.append(f"| `{task}` | {r['successes']}/{r['episodes']} ({100 * r['success']:.1f} %) "
-                     f"| {100 * lo:.1f} to {100 * hi:.1f} % | {r['episodes']} |")
+        task, opts = parse_task_spec(spec)
+        name = f"`{task}`" + "".join(f", `{k}={v}`" for k, v in opts.items())
+        lines.append(f"| {name} | {r['successes']}/{r['episodes']} ({100 * r['success']:.1f} %) "
+                     f"| {100 * lo:.1f} to {100 * hi:.1f} % | {r.get('length', '')} |")
     return "\n".join(lines)

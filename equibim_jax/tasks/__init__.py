@@ -138,6 +138,8 @@ def _coerce(name: str, tp: Any, value: Any) -> Any:
         text = value.strip()
         if text.lower() == "none":
             return None
+        if tp is bool and text.lower() in ("true", "false"):  # Python's spelling as well as JSON's
+            return text.lower() == "true"
         try:
             value = json.loads(text)
         except json.JSONDecodeError:
