@@ -48,8 +48,8 @@ class Generate:
     """Task name (`equibim tasks` lists them)."""
     out: str
     """Dataset path to write (a .zarr directory)."""
-    episodes: int = 48
-    """Successful episodes to keep."""
+    episodes: int = 50
+    """Successful episodes to keep (50 per task, as in the paper)."""
     options: dict[str, str] = dataclasses.field(default_factory=dict)
     """Task options as KEY VALUE pairs, e.g. `--options side left n_points 64`."""
     seed: int = 0
