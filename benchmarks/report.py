@@ -97,6 +97,17 @@ are loads from the persistent compilation cache. Cold, the same compiles took 15
 / 32.5 s. The renderer meets its target of 300 frames/s at 64x64 with room to spare.
 """
 
+NOTES_DEMOS = """\
+Why the demo-generation figures are what they are (`demos_2core_cpu.json`): every task
+generated its 50 demos in 10 to 35 s after compiling, inside the 60 s target; compiling
+the rollout took 32 to 45 s per task. Each control step here does more than physics:
+the expert's IK (10 damped-least-squares iterations for both arms), 5 physics substeps,
+and a 64x64 ray-cast image, so the physics rate is 0.024 to 0.029 of one MuJoCo C core
+stepping the same model without rendering, against about 0.06 for physics alone in
+`sim_2core_cpu.json`. MJX runs at most 32 envs per vmap on this CPU (the batched
+Cholesky deadlock described under the simulator table), which also caps this rate.
+"""
+
 NOTES_OBS = """\
 ### Why: observation cost and the closed-loop rollout
 
@@ -505,7 +516,7 @@ def section_layers(name: str, d: dict) -> str:
 
 SECTIONS = {"demos": section_demos, "sim": section_sim, "obs_cost": section_obs_cost, "rollout": section_rollout,
             "train": section_train, "train_compare": section_train_compare, "layers": section_layers}
-NOTES_AFTER = {"sim": NOTES_SIM, "rollout": NOTES_OBS, "layers": NOTES_TRAIN}
+NOTES_AFTER = {"sim": NOTES_SIM, "demos": NOTES_DEMOS, "rollout": NOTES_OBS, "layers": NOTES_TRAIN}
 
 
 def render(results: pathlib.Path = RESULTS) -> str:
