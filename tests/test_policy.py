@@ -174,6 +174,20 @@ def test_ddim_with_oracle_eps_recovers_x0():
     np.testing.assert_allclose(out, x0, atol=1e-4)
 
 
+def test_ddim_with_oracle_sample_recovers_x0():
+    """Sample-prediction: if the network returns the true x0, every DDIM update lands on the
+    deterministic path of x0 and the loop ends at x0."""
+    sched = make_schedule(100)
+    x0 = jax.random.uniform(jax.random.key(8), (2, 8, 3), minval=-0.9, maxval=0.9)
+    x_t = jax.random.normal(jax.random.key(9), x0.shape)
+    out = ddim_loop(lambda x, k: x0, x_t, sched, 10, prediction="sample")
+    np.testing.assert_allclose(out, x0, atol=1e-5)
+    with pytest.raises(ValueError, match="prediction must be one of"):
+        ddim_loop(lambda x, k: x0, x_t, sched, 10, prediction="v")
+    with pytest.raises(ValueError, match="prediction must be one of"):
+        DP3Config(action_dim=2, state_dim=2, prediction="x0")
+
+
 def test_ddim_is_equivariant_for_an_equivariant_eps():
     sched = make_schedule(100)
     perm, signs = jnp.array([2, 3, 0, 1]), jnp.array([1.0, -1.0, 1.0, -1.0])

@@ -230,6 +230,33 @@ def test_sym_loss_in_x0_space(setup):
         dataclasses.replace(POLICY, sym_target="a0")
 
 
+def test_sample_prediction_targets_and_sym_loss(setup):
+    """prediction="sample": the BC target is the clean chunk, and L_sym is 0 for an
+    equivariant sample-predictor and > 0 for a generic one, in both sym_target views."""
+    sym, ds = setup["sym"], setup["dataset"]
+    s_a = sym["action"]
+    params = jax.tree.map(lambda w: 0.05 * w, _small_params())
+    batch = sample_batch(ds, jax.random.key(2), 8)
+    key = jax.random.key(3)
+
+    def symmetrised(p, x, k, obs):
+        mirrored_obs = {f: sym[f](v) for f, v in obs.items()}
+        return 0.5 * (_small_apply(p, x, k, obs) + s_a(_small_apply(p, s_a(x), k, mirrored_obs)))
+
+    for view in ("eps", "x0"):
+        pol = make_policy("dp3", dataclasses.replace(POLICY, prediction="sample", sym_target=view))
+        inputs, targets = pol.prepare(batch, key)
+        np.testing.assert_array_equal(np.asarray(targets["sample"]), np.asarray(batch["action"]))
+        pred = _small_apply(params, inputs["noisy_action"], inputs["k"], inputs["obs"])
+        want = jnp.mean(jnp.square(pred - batch["action"]))
+        assert float(pol.bc_loss(pred, targets)) == pytest.approx(float(want), rel=1e-6)
+        _, eq = policy_loss(_with_net(symmetrised, pol), params, batch, key, sym, sym_weight=0.5)
+        _, gen = policy_loss(_with_net(_small_apply, pol), params, batch, key, sym, sym_weight=0.5)
+        assert float(eq["sym"]) < 1e-6, view
+        assert float(gen["sym"]) > 1e-6, view
+        assert np.isfinite(float(gen["total"]))
+
+
 def test_sym_loss_on_a_sub_batch(setup):
     """sym_batch=n: BC still over all B samples, L_sym the mean over the first n of them."""
     sym, ds = setup["sym"], setup["dataset"]

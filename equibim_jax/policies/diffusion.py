@@ -1,7 +1,8 @@
 """Diffusion machinery shared by the diffusion policies: the noise predictor, the DDPM
 training schedule and deterministic DDIM sampling.
 
-Training is DDPM epsilon-prediction with a squared-cosine beta schedule. Sampling is
+Training is DDPM with a squared-cosine beta schedule; the network predicts the noise
+(``"epsilon"``) or the clean sample (``"sample"``, as DP3 offers). Sampling is
 deterministic DDIM (``eta = 0``, "leading" timestep spacing, final alpha 1, optional
 clipping of the predicted ``x0`` to ``[-1, 1]``), written as one ``lax.scan``; given a key
 it is deterministic.
@@ -36,9 +37,13 @@ __all__ = [
     "squared_cosine_betas",
     "add_noise",
     "predict_x0",
+    "eps_from_x0",
     "ddim_timesteps",
     "ddim_loop",
+    "PREDICTIONS",
 ]
+
+PREDICTIONS = ("epsilon", "sample")
 
 
 class NoisePredictor(nn.Module):
@@ -138,35 +143,53 @@ def ddim_timesteps(num_train_steps: int, num_inference_steps: int) -> np.ndarray
     return (np.arange(num_inference_steps) * ratio)[::-1].astype(np.int32)
 
 
+def eps_from_x0(schedule: DiffusionSchedule, a_k: Array, x0: Array, k: Array) -> Array:
+    """The noise a clean-sample prediction implies: ``(a_k - sqrt(abar_k) x0) /
+    sqrt(1 - abar_k)``. ``a_k, x0``: ``[B, ...]``; ``k``: ``[B]`` int steps."""
+    acp = schedule.alphas_cumprod[k].reshape((-1,) + (1,) * (a_k.ndim - 1))
+    return (a_k - jnp.sqrt(acp) * x0) / jnp.sqrt(1.0 - acp)
+
+
 def ddim_loop(
     eps_fn: Callable[[Array, Array], Array],
     x_init: Array,
     schedule: DiffusionSchedule,
     num_inference_steps: int,
     clip_sample: bool = True,
+    prediction: str = "epsilon",
 ) -> Array:
     """Deterministic DDIM (``eta = 0``) from ``x_init`` down to ``x_0``, as a ``lax.scan``.
 
     Args:
-      eps_fn: ``(x [B, ...], k [B]) -> eps [B, ...]``.
+      eps_fn: ``(x [B, ...], k [B]) -> [B, ...]``, the network's output: the noise
+        (``prediction="epsilon"``) or the clean sample (``"sample"``).
       x_init: ``[B, ...]`` initial Gaussian noise.
       schedule: training schedule (``K`` steps).
       num_inference_steps: number of DDIM updates.
       clip_sample: clip the predicted ``x0`` to ``[-1, 1]``.
+      prediction: what ``eps_fn`` predicts, one of :data:`PREDICTIONS`. For ``"sample"``
+        the noise of the update is the one the unclipped prediction implies.
     Returns:
       ``[B, ...]`` denoised sample.
     """
+    if prediction not in PREDICTIONS:
+        raise ValueError(f"prediction must be one of {PREDICTIONS}, got {prediction!r}")
     num_train = schedule.alphas_cumprod.shape[0]
     ratio = num_train // num_inference_steps
     ts = jnp.asarray(ddim_timesteps(num_train, num_inference_steps))
     acp = schedule.alphas_cumprod
 
     def body(x, t):
-        eps = eps_fn(x, jnp.full((x.shape[0],), t, jnp.int32))
+        out = eps_fn(x, jnp.full((x.shape[0],), t, jnp.int32))
         a_t = acp[t]
         prev = t - ratio
         a_prev = jnp.where(prev >= 0, acp[jnp.maximum(prev, 0)], 1.0)
-        x0 = (x - jnp.sqrt(1.0 - a_t) * eps) / jnp.sqrt(a_t)
+        if prediction == "epsilon":
+            eps = out
+            x0 = (x - jnp.sqrt(1.0 - a_t) * eps) / jnp.sqrt(a_t)
+        else:
+            x0 = out
+            eps = (x - jnp.sqrt(a_t) * x0) / jnp.sqrt(1.0 - a_t)
         if clip_sample:
             x0 = jnp.clip(x0, -1.0, 1.0)
         return jnp.sqrt(a_prev) * x0 + jnp.sqrt(1.0 - a_prev) * eps, None

@@ -1,16 +1,18 @@
 """``dp3``: a DP3-style diffusion policy (state + optional point cloud, 1D conditional U-Net).
 
-The network predicts the noise ``eps(a_k, k, O)`` of a DDPM forward process on the
-normalised action chunk (epsilon-prediction); the BC loss is its mean squared error.
-Sampling is deterministic DDIM from Gaussian noise. What ``L_sym`` compares
-(``DP3Config.sym_target``):
+The network reads a noisy normalised action chunk ``a_k`` of a DDPM forward process, the
+step ``k`` and the observations, and predicts either the noise (``prediction="epsilon"``,
+the default) or the clean chunk (``prediction="sample"``, DP3's other option); the BC
+loss is the mean squared error against that target. Sampling is deterministic DDIM from
+Gaussian noise. What ``L_sym`` compares (``DP3Config.sym_target``):
 
-* ``"eps"``: the noise predictions, ``eps(S_a a_k, k, S O)`` against ``S_a eps(a_k, k, O)``
-  at the same ``k`` and with the same noise mirrored (``S_a a_k`` is the noisy mirrored
-  action because ``S_a`` is linear in normalised space);
-* ``"x0"``: the clean actions those predictions imply at step ``k``
-  (:func:`~equibim_jax.policies.diffusion.predict_x0`, clipped as DDIM clips them). For
-  unclipped entries the ``x0`` residual is the ``eps`` residual times
+* ``"eps"``: the noise, ``eps(S_a a_k, k, S O)`` against ``S_a eps(a_k, k, O)`` at the
+  same ``k`` and with the same noise mirrored (``S_a a_k`` is the noisy mirrored action
+  because ``S_a`` is linear in normalised space); with sample-prediction, the noise the
+  predicted sample implies;
+* ``"x0"``: the clean actions, clipped to ``[-1, 1]`` as DDIM clips them: implied by the
+  noise prediction (:func:`~equibim_jax.policies.diffusion.predict_x0`) or predicted
+  directly. For unclipped entries the ``x0`` residual is the ``eps`` residual times
   ``sqrt((1 - abar_k) / abar_k)``, so it weights the high-noise steps far more.
 """
 
@@ -26,10 +28,12 @@ import jax.numpy as jnp
 
 from equibim_jax.policies.base import Policy, PolicyConfig
 from equibim_jax.policies.diffusion import (
+    PREDICTIONS,
     DiffusionSchedule,
     NoisePredictor,
     add_noise,
     ddim_loop,
+    eps_from_x0,
     make_schedule,
     predict_x0,
 )
@@ -55,6 +59,8 @@ class DP3Config(PolicyConfig):
       num_inference_steps: DDIM steps at sampling time.
       clip_sample: clip DDIM's predicted ``x0`` to ``[-1, 1]`` (the normalised range).
       sym_target: what ``L_sym`` compares, ``"eps"`` or ``"x0"`` (module docstring).
+      prediction: what the network predicts, ``"epsilon"`` (the noise) or ``"sample"``
+        (the clean action chunk).
     """
 
     name: ClassVar[str] = "dp3"
@@ -64,6 +70,7 @@ class DP3Config(PolicyConfig):
     num_inference_steps: int = 10
     clip_sample: bool = True
     sym_target: str = "eps"
+    prediction: str = "epsilon"
 
     def __post_init__(self):
         super().__post_init__()
@@ -75,6 +82,8 @@ class DP3Config(PolicyConfig):
             )
         if self.sym_target not in SYM_TARGETS:
             raise ValueError(f"DP3Config.sym_target must be one of {SYM_TARGETS}, got {self.sym_target!r}")
+        if self.prediction not in PREDICTIONS:
+            raise ValueError(f"DP3Config.prediction must be one of {PREDICTIONS}, got {self.prediction!r}")
 
     @property
     def obs_keys(self) -> tuple[str, ...]:
@@ -127,18 +136,21 @@ def ddim_sample(model: NoisePredictor, params: Any, obs: Mapping[str, Array], ke
     def eps_fn(x, k):
         return model.apply(variables, x, k, cond, method=NoisePredictor.denoise)
 
-    return ddim_loop(eps_fn, x_init, schedule, cfg.num_inference_steps, cfg.clip_sample)
+    return ddim_loop(eps_fn, x_init, schedule, cfg.num_inference_steps, cfg.clip_sample, cfg.prediction)
 
 
 def make_dp3(config: DP3Config) -> Policy:
     """The ``dp3`` :class:`~equibim_jax.policies.base.Policy` of a resolved config.
 
-    ``inputs = {"obs": {field: [B, To, ...]}, "noisy_action": [B, Tp, A], "k": [B]}``,
-    ``targets = {"noise": [B, Tp, A]}``, ``pred = eps [B, Tp, A]``.
+    ``inputs = {"obs": {field: [B, To, ...]}, "noisy_action": [B, Tp, A], "k": [B]}``;
+    ``targets = {"noise": [B, Tp, A]}`` and ``pred`` the noise for epsilon-prediction,
+    ``targets = {"sample": [B, Tp, A]}`` and ``pred`` the clean chunk for sample-prediction.
     """
     model = NoisePredictor(config)
     schedule = make_schedule(config.num_train_steps)
     akey = config.action_key
+    eps_mode = config.prediction == "epsilon"
+    tkey = "noise" if eps_mode else "sample"
 
     def init(key):
         return _init(config, key)
@@ -150,13 +162,13 @@ def make_dp3(config: DP3Config) -> Policy:
         k = jax.random.randint(k_step, (a0.shape[0],), 0, config.num_train_steps)
         inputs = {"obs": {f: batch[f] for f in config.obs_keys},
                   "noisy_action": add_noise(schedule, a0, noise, k), "k": k}
-        return inputs, {"noise": noise}
+        return inputs, {tkey: noise if eps_mode else a0}
 
     def apply(params, inputs):
         return model.apply({"params": params}, inputs["noisy_action"], inputs["k"], inputs["obs"])
 
     def bc_loss(pred, targets):
-        return jnp.mean(jnp.square(pred - targets["noise"]))
+        return jnp.mean(jnp.square(pred - targets[tkey]))
 
     def mirror_inputs(sym, inputs):
         # Same k, same noise mirrored: S_a a_k == add_noise(S_a a0, S_a noise, k), S_a linear.
@@ -164,13 +176,17 @@ def make_dp3(config: DP3Config) -> Policy:
                 "noisy_action": sym[akey](inputs["noisy_action"]), "k": inputs["k"]}
 
     def mirror_targets(sym, targets):
-        return {"noise": sym[akey](targets["noise"])}
+        return {tkey: sym[akey](targets[tkey])}
 
     def sym_view(inputs, pred):
-        if config.sym_target == "eps":
-            return pred
         # S_a is a signed permutation in normalised space: it commutes with the clip.
-        return predict_x0(schedule, inputs["noisy_action"], pred, inputs["k"])
+        if eps_mode:
+            if config.sym_target == "eps":
+                return pred
+            return predict_x0(schedule, inputs["noisy_action"], pred, inputs["k"])
+        if config.sym_target == "eps":
+            return eps_from_x0(schedule, inputs["noisy_action"], pred, inputs["k"])
+        return jnp.clip(pred, -1.0, 1.0)
 
     def mirror_view(sym, view):
         return sym[akey](view)
