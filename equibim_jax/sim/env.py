@@ -14,9 +14,15 @@ qpos           [2 * (n_arm + 1)]        left arm joints, left gripper opening, r
 ee             [2 * (3 + R + 1)]        per arm: ee position, rotation (R = 6 for "6d",
                                         4 for "quat"), gripper opening
 image          [H, W, 3] uint8          RGB from the robot's camera on the mirror plane
+wrist_image    [2, H, W, 3] uint8       RGB from the left (index 0) and right (1) wrist
+                                        cameras (robots with ``wrist_cameras``, robot A)
 depth          [H, W] float32           distance along each pixel's ray (``far`` for misses)
 point_cloud    [N, 3] float32           world-frame points cropped to the workspace
 =============  =======================  ======================================================
+
+Under the mirror ``S``, ``image`` and ``depth`` flip left-right (one camera on the
+plane); ``wrist_image`` swaps the two views and flips each (``camera_pair_op``): the
+mirrored scene seen by the left wrist camera is the right camera's image flipped.
 
 Action modes (``EnvConfig.action``): ``"joint"`` (same layout as the ``qpos`` observation:
 absolute arm joint targets plus one gripper opening in [0, 1] per arm) and ``"ee"`` (same
@@ -47,13 +53,14 @@ from equibim_jax.symmetry import (
     ModelSymmetry,
     Symmetry,
     arm_swap_pose_op,
+    camera_pair_op,
     derive_symmetry,
     image_op,
     point_cloud_op,
 )
 from equibim_jax.symmetry.mirror import matrix_to_rot6d
 
-OBS_FIELDS = ("qpos", "ee", "image", "depth", "point_cloud")
+OBS_FIELDS = ("qpos", "ee", "image", "depth", "point_cloud", "wrist_image")
 ACTION_MODES = ("joint", "ee")
 ROTATIONS = ("6d", "quat")
 
@@ -85,13 +92,16 @@ class EnvConfig:
 
     Attributes:
       robot: a name from :func:`equibim_jax.sim.robot_names`.
-      obs: observation fields, a subset of ``OBS_FIELDS``.
+      obs: observation fields, a subset of ``OBS_FIELDS`` (shapes in the module
+        docstring). ``"wrist_image"`` needs a robot with wrist cameras
+        (``RobotInfo.wrist_cameras``: robot A, not robot B).
       action: ``"joint"`` or ``"ee"``.
       rotation: rotation representation of ``ee`` fields, ``"6d"`` or ``"quat"``.
       ctrl_dt: control period (s); ``None`` takes the robot's default.
       sim_dt: physics timestep (s); ``None`` keeps the model's. ``ctrl_dt`` must be a
         whole multiple of it.
-      image_size: square image side for ``image`` / ``depth`` (64, 96, 128, ...).
+      image_size: square image side for ``image`` / ``depth`` / ``wrist_image`` (64, 96,
+        128, ...); both wrist views have this size.
       n_points: points in ``point_cloud``.
       crop: ``(min [3], max [3])`` world-frame box the point cloud is cropped to, or
         ``None`` for the scene's ``point_cloud_crop`` if it sets one, else the robot's
@@ -135,6 +145,12 @@ class EnvConfig:
         if len(set(obs)) != len(obs):
             raise ValueError(f"duplicate observation fields in {obs}")
         object.__setattr__(self, "obs", obs)
+        if "wrist_image" in obs and robots.robot_info(self.robot).wrist_cameras is None:
+            raise ValueError(
+                f"observation 'wrist_image' needs wrist cameras, but robot {self.robot!r} has none "
+                f"(RobotInfo.wrist_cameras is None); robots with wrist cameras: "
+                f"{[r for r in robots.robot_names() if robots.robot_info(r).wrist_cameras]}"
+            )
         if self.action not in ACTION_MODES:
             raise ValueError(f"unknown action mode {self.action!r}; valid modes: {ACTION_MODES}")
         if self.rotation not in ROTATIONS:
@@ -260,6 +276,16 @@ class Env:
                 ),
             )
             self.renderer = make_renderer(model, cam_cfg)
+        self.wrist_renderers = None
+        if "wrist_image" in config.obs:
+            self._check_wrist_cameras()
+            # Default lighting, as the head camera's: the headlight follows each camera, so
+            # the two views light the scene as mirror images of each other.
+            self.wrist_renderers = tuple(
+                make_renderer(model, CameraConfig(camera=c, width=config.image_size,
+                                                  height=config.image_size, outputs=("rgb",)))
+                for c in self.info.wrist_cameras
+            )
         self._ik = (
             make_ik(model, self.info, iterations=config.ik_iterations) if config.action == "ee" else None
         )
@@ -317,6 +343,7 @@ class Env:
             "qpos": joint, "ee": ee, "image": image_op("HWC"),
             "depth": lambda d: jnp.flip(d, axis=-1),
             "point_cloud": point_cloud_op(self.mirror),
+            "wrist_image": camera_pair_op("HWC"),
         }
         obs_sym = Symmetry({k: ops[k] for k in self.config.obs})
         act_sym = joint if self.config.action == "joint" else ee
@@ -398,6 +425,28 @@ class Env:
                 f"{np.round(x_axis, 4)}, plane normal {n}); image symmetry needs such a camera"
             )
 
+    def _check_wrist_cameras(self):
+        """The wrist cameras exist and are mirror partners with a horizontal image flip, so
+        that ``camera_pair_op`` (swap the views, flip each) is ``S`` on ``wrist_image``."""
+        m = self.mj_model
+        names = self.info.wrist_cameras
+        if names is None:
+            raise ValueError(f"robot {self.info.name!r} has no wrist cameras")
+        ids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_CAMERA, c) for c in names]
+        missing = [c for c, i in zip(names, ids) if i < 0]
+        if missing:
+            raise ValueError(f"wrist camera(s) {missing} are not in the model")
+        (a, b), flips = ids, self.sym.camera_flip
+        if self.sym.cameras[a] != b or self.sym.cameras[b] != a or flips[a] != "horizontal" \
+                or flips[b] != "horizontal":
+            partner = lambda i: self.sym.camera_names[self.sym.cameras[i]] if self.sym.cameras[i] >= 0 else None
+            raise ValueError(
+                f"wrist cameras {names[0]!r} and {names[1]!r} are not mirror partners with a "
+                f"horizontal image flip (mirror partner of {names[0]!r}: {partner(a)!r}, of "
+                f"{names[1]!r}: {partner(b)!r}; image flips {flips[a]!r}, {flips[b]!r}); "
+                f"wrist_image symmetry needs such a pair"
+            )
+
     # ------------------------------------------------------------------ observations
     def ee_pose(self, data: mjx.Data) -> jax.Array:
         """End-effector poses [2, 3 + R] (position, then 6D rotation or quaternion)."""
@@ -431,6 +480,8 @@ class Env:
                 out["depth"] = r["depth"]
             if "point_cloud" in cfg.obs:
                 out["point_cloud"] = r["points"]
+        if self.wrist_renderers is not None:
+            out["wrist_image"] = jnp.stack([w.rgb(data) for w in self.wrist_renderers])
         return out
 
     # ------------------------------------------------------------------ dynamics

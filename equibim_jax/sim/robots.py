@@ -7,7 +7,12 @@ Robots
     wrist_rotate), each with a parallel-jaw gripper made of two slide-joint fingers with
     their own position actuators. Bases at (0, +-0.3, 0), reach about 0.65 m from the
     shoulder. Head camera ``head`` on the mirror plane at (-0.2, 0, 0.75), pitched 53 deg
-    down (optical axis meets the table at x = 0.36), fovy 65. The paper's simulated (RoboTwin) tasks use this robot.
+    down (optical axis meets the table at x = 0.36), fovy 65. Wrist cameras ``wrist_left`` /
+    ``wrist_right`` in the gripper bodies at (0.02, 0, 0.06) (gripper frame: behind and
+    above the fingers), looking along the gripper's +x pitched 25 deg towards its -z, image
+    x axis along the gripper's -y, fovy 85: they see the fingers and what is in front of
+    them, and are mirror partners with a horizontal image flip. The paper's simulated
+    (RoboTwin) tasks use this robot.
 ``robot_b``
     Two SO-101-style 5-DoF arms (shoulder_pan, shoulder_lift, elbow_flex, wrist_flex,
     wrist_roll), each with one moving jaw closing against a fixed jaw, as on the SO-101.
@@ -23,8 +28,9 @@ Frame and mirror
 ----------------
 x forward (away from the arms' base line), y to the robot's left, z up. The table top is
 the plane z = 0 for both robots (the arms stand on it). The mirror plane is y = 0 for both
-robots: ``Mirror.from_axis("y")``. Cameras sit on the plane with their image x axis
-along -y, so the mirror acts on images as a horizontal flip.
+robots: ``Mirror.from_axis("y")``. The ``head`` / ``top`` cameras sit on the plane with their
+image x axis along -y, so the mirror acts on their images as a horizontal flip. Robot A's
+wrist cameras are a mirror pair: the mirror swaps the two views and flips each.
 
 The right arm of each robot is the exact mirror of the left: all body frames are
 axis-aligned at q = 0 and every offset is an exact decimal with y negated. The body-local
@@ -166,6 +172,10 @@ class RobotInfo:
         linear in the opening (see :meth:`gripper_gap`).
       gripper_pads: ((left pad geom names), (right pad geom names)), the geoms that make
         the friction grasp (for contact / grasp checks).
+      wrist_cameras: (left, right) names of the wrist cameras, one in each gripper body,
+        mirror partners of each other whose image maps by a horizontal flip (the env's
+        ``wrist_image`` observation), or ``None`` when the robot has none (robot B).
+      sides: the side names, ``("left", "right")``.
     """
 
     name: str
@@ -190,6 +200,7 @@ class RobotInfo:
     gripper_closed_gap: float
     gripper_pads: tuple[tuple[str, ...], tuple[str, ...]]
     sides: tuple[str, str] = SIDES
+    wrist_cameras: tuple[str, str] | None = None
 
     # ------------------------------------------------------------------ helpers
     @staticmethod
@@ -337,6 +348,7 @@ _INFOS: dict[str, RobotInfo] = {
         gripper_span=0.094,
         gripper_closed_gap=0.004,
         gripper_pads=(("left_pad_a", "left_pad_b"), ("right_pad_a", "right_pad_b")),
+        wrist_cameras=("wrist_left", "wrist_right"),
     ),
     "robot_b": RobotInfo(
         name="robot_b",

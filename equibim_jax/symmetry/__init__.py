@@ -46,6 +46,7 @@ from equibim_jax.symmetry.structure import (
     JointMap,
     Symmetry,
     arm_swap_pose_op,
+    camera_pair_op,
     identity_op,
     image_op,
     point_cloud_op,
@@ -54,7 +55,7 @@ from equibim_jax.symmetry.structure import (
 __all__ = [
     "APPROX_TOL", "Asymmetry", "DEFAULT_TOL", "DYN_RTOL", "DynamicsReport", "FORMAT_VERSION", "JointMap",
     "Mirror", "ModelSymmetry", "Symmetry", "SymmetryError", "SymmetryWarning",
-    "arm_swap_pose_op", "axis_reflection", "check_mirror_map", "derive_symmetry", "flip_image",
+    "arm_swap_pose_op", "axis_reflection", "camera_pair_op", "check_mirror_map", "derive_symmetry", "flip_image",
     "identity_op", "image_op", "load_mirror_map", "matrix_to_rot6d", "point_cloud_op", "quat_reflection_matrix", "reflect_axial",
     "reflect_point_cloud", "reflect_point_cloud_camera", "reflect_points", "reflect_polar",
     "reflect_pose_6d", "reflect_pose_quat", "reflect_quat", "reflect_rot6d", "reflect_rotmat",

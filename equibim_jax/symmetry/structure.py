@@ -142,6 +142,41 @@ def image_op(layout: str = "NHWC") -> Op:
     return lambda x: _m.flip_image(x, layout)
 
 
+def camera_pair_op(layout: str = "HWC") -> Op:
+    """Operator on the images of a mirror pair of cameras (e.g. left and right wrist):
+    swap the two views, then flip each image left-right.
+
+    ``layout`` names each image's trailing axes as in :func:`image_op`: ``"HWC"`` /
+    ``"NHWC"`` -> the pair is [..., 2, H, W, C] (swap axis -4, flip axis -2);
+    ``"CHW"`` / ``"NCHW"`` -> [..., 2, C, H, W] (swap axis -4, flip axis -1). Index 0 of
+    the pair axis is one camera (the left one), index 1 its mirror partner; same shape
+    and dtype out.
+
+    This is ``S`` when the two cameras are mirror partners whose image maps by a
+    horizontal flip (``ModelSymmetry.cameras`` pairs them and ``camera_flip`` is
+    ``"horizontal"``): the mirrored scene seen by camera 0 is camera 1's image flipped,
+    and vice versa. A flip alone (``image_op``) would be wrong for such a pair: it is
+    ``S`` only for a single camera on the mirror plane.
+    """
+    if layout in ("NHWC", "HWC"):
+        flip_axis = -2
+    elif layout in ("NCHW", "CHW"):
+        flip_axis = -1
+    else:
+        raise ValueError(f"layout must be NHWC, HWC, NCHW or CHW, got {layout!r}")
+
+    def op(x: Array) -> Array:
+        x = jnp.asarray(x)
+        if x.ndim < 4 or x.shape[-4] != 2:
+            raise ValueError(
+                f"camera_pair_op expects a camera pair [..., 2, H, W, C] or [..., 2, C, H, W], "
+                f"got shape {x.shape}"
+            )
+        return jnp.flip(jnp.flip(x, axis=-4), axis=flip_axis)
+
+    return op
+
+
 def point_cloud_op(mirror: _m.Mirror) -> Op:
     """Operator that reflects world-frame point clouds [..., N, 3+]."""
     return lambda x: _m.reflect_point_cloud(mirror, x)
