@@ -4,7 +4,9 @@ Every ``Ta`` control steps the policy samples a ``[Tp, A]`` chunk from the last 
 observations and the env executes ``Ta`` of them; the whole episode is one ``lax.scan``
 and episodes are ``vmap``-ed, so a batch of evaluations is one compiled call. The mirrored
 side of an evaluation starts each episode from the mirror image (``env.mirror_state``) of
-the trained side's initial state, whatever the task.
+the trained side's initial state, whatever the task. ACT's temporal ensembling (query
+every step, average the overlapping chunks' actions) is the ``temporal_ensemble`` option
+of :func:`make_policy_rollout` (:func:`ensemble_step`).
 """
 
 from __future__ import annotations
@@ -22,10 +24,57 @@ from equibim_jax.evaluation.stats import wilson_interval
 from equibim_jax.policies.base import Policy, predict_action
 from equibim_jax.sim.env import Env
 
+Array = Any
+
+
+def init_ensemble_buffer(n_exec: int, action_dim: int) -> tuple[Array, Array]:
+    """An empty temporal-ensembling buffer for chunks of ``n_exec`` executed actions:
+    ``(actions [n_exec, n_exec, A] zeros, valid [n_exec, n_exec] False)``.
+
+    Row ``n`` holds the prediction made ``n + 1`` control steps before the next
+    :func:`ensemble_step`, column ``i`` its action for that step ``+ i``.
+    """
+    return (jnp.zeros((n_exec, n_exec, action_dim), jnp.float32),
+            jnp.zeros((n_exec, n_exec), bool))
+
+
+def ensemble_step(buffer: tuple[Array, Array], new_chunk: Array, k: float | Array
+                  ) -> tuple[Array, tuple[Array, Array]]:
+    """One control step of ACT's temporal ensembling (pure ``jnp``, jit/vmap-able).
+
+    Inserts ``new_chunk`` (the newest prediction, its actions for this step and the
+    ``n_exec - 1`` next ones) as row 0, averages every buffered prediction for this step
+    with weights ``exp(-k * i) / sum_j exp(-k * j)``, ``i = 0`` for the *oldest* of them
+    (ACT's scheme: with ``k > 0`` older predictions weigh more), then shifts the buffer
+    one step on (column 0 dropped, the oldest row falls out at the next insertion).
+
+    Args:
+      buffer: ``(actions [n_exec, n_exec, A], valid [n_exec, n_exec] bool)`` from
+        :func:`init_ensemble_buffer` or the previous call.
+      new_chunk: ``[n_exec, A]``.
+      k: the weight constant (ACT uses 0.01; 0 gives the plain mean).
+    Returns:
+      ``(action [A], buffer)``.
+    """
+    acts, valid = buffer
+    acts = jnp.concatenate([new_chunk[None].astype(acts.dtype), acts[:-1]], axis=0)
+    valid = jnp.concatenate([jnp.ones_like(valid[:1]), valid[:-1]], axis=0)
+    now, ok = acts[:, 0], valid[:, 0]  # [N, A], [N]: row n was predicted n steps ago
+    # i = how many valid predictions are older than row n (0 for the oldest).
+    okf = ok.astype(acts.dtype)
+    i = jnp.cumsum(okf[::-1])[::-1] - okf
+    logw = jnp.where(ok, -k * i, -jnp.inf)
+    w = jnp.exp(logw - jnp.max(logw))  # row 0 is always valid: the max is finite
+    action = jnp.sum(w[:, None] * now, axis=0) / jnp.sum(w)
+    acts = jnp.concatenate([acts[:, 1:], jnp.zeros_like(acts[:, :1])], axis=1)
+    valid = jnp.concatenate([valid[:, 1:], jnp.zeros_like(valid[:, :1])], axis=1)
+    return action, (acts, valid)
+
 
 def make_policy_rollout(env: Env, policy: Policy, normalizer, length: int | None = None,
                         mirror_noise: bool = False, record_qpos: bool = False,
-                        observe_every_step: bool = False) -> Callable:
+                        observe_every_step: bool = False,
+                        temporal_ensemble: float | None = None) -> Callable:
     """A pure ``rollout(params, key) -> dict`` of one closed-loop episode.
 
     Args:
@@ -44,6 +93,14 @@ def make_policy_rollout(env: Env, policy: Policy, normalizer, length: int | None
         only the last ``To`` steps of each chunk are observed (the policy reads nothing
         else; ``Env.step(observe=False)`` for the others): the same episode, cheaper with a
         rendered observation (``benchmarks/rollout.py`` measures it).
+      temporal_ensemble: ``None`` (the default): action chunking as above. A float ``k``
+        (ACT uses 0.01): ACT's temporal ensembling. The policy is queried at *every*
+        control step (and every step is observed); each prediction's executed part,
+        ``chunk[To - 1:]`` (``Tp - To + 1`` actions, for this step and the next ones), is
+        kept in a buffer, and the action executed at step ``t`` is the weighted mean of
+        all buffered predictions for step ``t``, weights ``exp(-k i)`` normalised, ``i = 0``
+        the oldest prediction (:func:`ensemble_step`). The episode has the same
+        ``n_chunks * Ta`` control steps; ``mirror_noise`` applies to every query.
     Returns:
       ``rollout(params, key, mirrored=False)`` -> ``{"success": [] bool (latched),
       "success_t": [n_chunks * Ta] bool, "nan_actions": [] int32 (steps whose action was
@@ -66,6 +123,42 @@ def make_policy_rollout(env: Env, policy: Policy, normalizer, length: int | None
 
         s_a = normalized_symmetry({cfg.action_key: env.action_symmetry}, normalizer,
                                   names=(cfg.action_key,))[cfg.action_key]
+
+    if temporal_ensemble is not None:
+        k_te = float(temporal_ensemble)
+        if not math.isfinite(k_te):
+            raise ValueError(f"temporal_ensemble must be a finite float or None, got {temporal_ensemble}")
+        n_exec = cfg.pred_horizon - to + 1
+
+        def rollout_te(params, key, mirrored=False):
+            k_reset, k_pol = jax.random.split(key)
+            s = env.reset(k_reset)
+            s_m = env.mirror_state(s)
+            s = jax.tree.map(lambda a, b: jnp.where(mirrored, b, a), s, s_m)
+            hist = {f: jnp.repeat(s.obs[f][None], to, axis=0) for f in fields}  # [To, ...]
+            buf = init_ensemble_buffer(n_exec, cfg.action_dim)
+
+            def step(carry, t):
+                s, hist, buf = carry
+                obs = {f: v[None] for f, v in hist.items()}
+                noise_op = (lambda z: jnp.where(mirrored, s_a(z), z)) if mirror_noise else None
+                pred = predict_action(policy, params, obs, jax.random.fold_in(k_pol, t), normalizer,
+                                      noise_op=noise_op)["action_pred"][0]
+                a, buf = ensemble_step(buf, pred[to - 1 :], k_te)
+                s = env.step(s, a)
+                hist = {f: jnp.concatenate([hist[f][1:], s.obs[f][None]], 0) for f in fields}
+                return (s, hist, buf), (s.info["success"], s.metrics["nan_action"],
+                                        s.data.qpos if record_qpos else None)
+
+            (s, _, _), (succ, nan, qpos_t) = jax.lax.scan(step, (s, hist, buf),
+                                                          jnp.arange(n_chunks * ta))
+            out = {"success": s.info["success"], "success_t": succ,
+                   "nan_actions": jnp.sum(nan).astype(jnp.int32), "final_qpos": s.data.qpos}
+            if record_qpos:
+                out["qpos_t"] = qpos_t
+            return out
+
+        return rollout_te
 
     def rollout(params, key, mirrored=False):
         k_reset, k_pol = jax.random.split(key)

@@ -96,12 +96,22 @@ class PolicyConfig:
         """The observation field whose width is ``state_dim`` (None: no such field)."""
         return None
 
-    def with_data(self, action_dim: int, obs_dims: Mapping[str, int]):
+    def unresolved(self) -> list[str]:
+        """Names of the data-dependent fields still unset (``with_data`` sets them)."""
+        out = ["action_dim"] if self.action_dim is None else []
+        if self.state_key is not None and self.state_dim is None:
+            out.append("state_dim")
+        return out
+
+    def with_data(self, action_dim: int, obs_dims: Mapping[str, int],
+                  obs_shapes: Mapping[str, tuple[int, ...]] | None = None):
         """This config with ``action_dim`` and ``state_dim`` taken from the data.
 
         Args:
           action_dim: width of the action field.
           obs_dims: ``{field: width of its last axis}`` of the available observations.
+          obs_shapes: ``{field: shape of one frame}``; policies that size themselves from
+            more than the last axis (image policies) read it.
         Raises:
           ValueError: the data lack a field the policy reads.
         """
@@ -202,9 +212,10 @@ def make_policy(name: str, config: PolicyConfig | None = None) -> Policy:
                          f"(e.g. {cls.__name__}().with_data(action_dim, obs_dims))")
     if type(config) is not cls:
         raise ValueError(f"policy {name!r} takes a {cls.__name__}, got {type(config).__name__}")
-    if config.action_dim is None or (config.state_key is not None and config.state_dim is None):
-        raise ValueError(f"{cls.__name__} has unresolved dims (action_dim={config.action_dim}, "
-                         f"state_dim={config.state_dim}); call config.with_data(...) first")
+    unresolved = config.unresolved()
+    if unresolved:
+        raise ValueError(f"{cls.__name__} has unresolved data-dependent fields {unresolved}; "
+                         f"call config.with_data(...) first")
     return _make_cached(name, config)
 
 

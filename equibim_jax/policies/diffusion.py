@@ -15,6 +15,7 @@ maps mirrored observations and mirrored initial noise to mirrored actions.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -25,7 +26,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from equibim_jax.policies.encoders import ObsEncoder
 from equibim_jax.policies.unet1d import ConditionalUnet1D
 
 Array = Any
@@ -41,23 +41,28 @@ __all__ = [
     "ddim_timesteps",
     "ddim_loop",
     "PREDICTIONS",
+    "SYM_TARGETS",
+    "ddim_sample",
+    "make_diffusion_policy",
 ]
 
 PREDICTIONS = ("epsilon", "sample")
+SYM_TARGETS = ("eps", "x0")
 
 
 class NoisePredictor(nn.Module):
     """``eps(a_k, k, O)``: observation encoder + conditional 1D U-Net.
 
     Attributes:
-      config: a config with ``encoder`` (:class:`EncoderConfig`) and ``unet``
-        (:class:`UNetConfig`) fields, e.g. ``DP3Config``.
+      config: a diffusion-policy config (``DP3Config``, ``DPConfig``): a ``unet``
+        (:class:`UNetConfig`) field and a ``make_encoder()`` method returning the
+        observation encoder module (``obs -> [B, D_cond]``).
     """
 
     config: Any
 
     def setup(self):
-        self.encoder = ObsEncoder(self.config.encoder)
+        self.encoder = self.config.make_encoder()
         self.unet = ConditionalUnet1D(self.config.unet)
 
     def __call__(self, noisy_actions: Array, k: Array, obs: Mapping[str, Array]) -> Array:
@@ -196,3 +201,134 @@ def ddim_loop(
 
     x, _ = jax.lax.scan(body, x_init, ts)
     return x
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _init(config: Any, key: Array) -> Any:
+    # Jitted: op-by-op initialisation of the U-Net dispatches hundreds of small ops.
+    x = jnp.zeros((1, config.pred_horizon, config.action_dim), jnp.float32)
+    k = jnp.zeros((1,), jnp.int32)
+    return NoisePredictor(config).init(key, x, k, config.example_obs())["params"]
+
+
+def ddim_sample(model: NoisePredictor, params: Any, obs: Mapping[str, Array], key: Array,
+                schedule: DiffusionSchedule, noise_op: Callable[[Array], Array] | None = None) -> Array:
+    """Sample normalised action chunks with DDIM.
+
+    Args:
+      model: the :class:`NoisePredictor` of a diffusion-policy config.
+      params: its ``"params"`` collection.
+      obs: ``{field: [B, To, ...]}`` normalised observations, as the encoder reads them.
+      key: PRNG key of the initial noise; same key, same output.
+      schedule: the training schedule.
+      noise_op: applied to the initial noise ``[B, Tp, A]`` drawn from ``key`` (e.g. the
+        action mirror ``S_a``, a signed permutation, so the noise stays ``N(0, I)``).
+    Returns:
+      ``[B, Tp, A]`` normalised actions.
+    """
+    cfg = model.config
+    variables = {"params": params}
+    cond = model.apply(variables, obs, method=NoisePredictor.encode)
+    x_init = jax.random.normal(key, (cond.shape[0], cfg.pred_horizon, cfg.action_dim), jnp.float32)
+    if noise_op is not None:
+        x_init = noise_op(x_init)
+
+    def eps_fn(x, k):
+        return model.apply(variables, x, k, cond, method=NoisePredictor.denoise)
+
+    return ddim_loop(eps_fn, x_init, schedule, cfg.num_inference_steps, cfg.clip_sample, cfg.prediction)
+
+
+def make_diffusion_policy(
+    config: Any,
+    augment: Callable[[dict, Array], dict] | None = None,
+    eval_obs: Callable[[dict], dict] | None = None,
+):
+    """A diffusion :class:`~equibim_jax.policies.base.Policy` (DDPM training, DDIM sampling).
+
+    The network reads a noisy normalised action chunk ``a_k``, the step ``k`` and the
+    observations, and predicts the noise (``config.prediction == "epsilon"``) or the clean
+    chunk (``"sample"``); the BC loss is the mean squared error against that target. What
+    ``L_sym`` compares (``config.sym_target``):
+
+    * ``"eps"``: the noise, ``eps(S_a a_k, k, S O)`` against ``S_a eps(a_k, k, O)`` at the
+      same ``k`` and with the same noise mirrored (``S_a a_k`` is the noisy mirrored action
+      because ``S_a`` is linear in normalised space); with sample-prediction, the noise the
+      predicted sample implies;
+    * ``"x0"``: the clean actions, clipped to ``[-1, 1]`` as DDIM clips them: implied by the
+      noise prediction (:func:`predict_x0`) or predicted directly. For unclipped entries
+      the ``x0`` residual is the ``eps`` residual times ``sqrt((1 - abar_k) / abar_k)``, so
+      it weighs the high-noise steps far more.
+
+    Args:
+      config: a resolved config with the horizons, ``action_key``, ``obs_keys``, ``unet``,
+        ``num_train_steps``, ``num_inference_steps``, ``clip_sample``, ``sym_target``,
+        ``prediction``, ``make_encoder()`` and ``example_obs()``.
+      augment: ``(obs, key) -> obs``, the training-time observation augmentation (drawn in
+        ``prepare``, so the mirrored branch sees ``S`` of the augmented sample).
+      eval_obs: ``obs -> obs`` applied before sampling (e.g. the centre crop).
+    Returns:
+      the policy: ``inputs = {"obs": {field: [B, To, ...]}, "noisy_action": [B, Tp, A],
+      "k": [B]}``; ``targets = {"noise"}`` (epsilon) or ``{"sample"}``, ``[B, Tp, A]``;
+      ``pred [B, Tp, A]``.
+    """
+    from equibim_jax.policies.base import Policy
+
+    model = NoisePredictor(config)
+    schedule = make_schedule(config.num_train_steps)
+    akey = config.action_key
+    eps_mode = config.prediction == "epsilon"
+    tkey = "noise" if eps_mode else "sample"
+
+    def init(key):
+        return _init(config, key)
+
+    def prepare(batch, key):
+        if augment is not None:  # split only then: augmentation-free streams stay as they were
+            key, k_aug = jax.random.split(key)
+        k_noise, k_step = jax.random.split(key)
+        a0 = batch[akey]
+        noise = jax.random.normal(k_noise, a0.shape, a0.dtype)
+        k = jax.random.randint(k_step, (a0.shape[0],), 0, config.num_train_steps)
+        obs = {f: batch[f] for f in config.obs_keys}
+        if augment is not None:
+            obs = augment(obs, k_aug)
+        inputs = {"obs": obs, "noisy_action": add_noise(schedule, a0, noise, k), "k": k}
+        return inputs, {tkey: noise if eps_mode else a0}
+
+    def apply(params, inputs):
+        return model.apply({"params": params}, inputs["noisy_action"], inputs["k"], inputs["obs"])
+
+    def bc_loss(pred, targets):
+        return jnp.mean(jnp.square(pred - targets[tkey]))
+
+    def mirror_inputs(sym, inputs):
+        # Same k, same noise mirrored: S_a a_k == add_noise(S_a a0, S_a noise, k), S_a linear.
+        return {"obs": {f: sym[f](v) for f, v in inputs["obs"].items()},
+                "noisy_action": sym[akey](inputs["noisy_action"]), "k": inputs["k"]}
+
+    def mirror_targets(sym, targets):
+        return {tkey: sym[akey](targets[tkey])}
+
+    def sym_view(inputs, pred):
+        # S_a is a signed permutation in normalised space: it commutes with the clip.
+        if eps_mode:
+            if config.sym_target == "eps":
+                return pred
+            return predict_x0(schedule, inputs["noisy_action"], pred, inputs["k"])
+        if config.sym_target == "eps":
+            return eps_from_x0(schedule, inputs["noisy_action"], pred, inputs["k"])
+        return jnp.clip(pred, -1.0, 1.0)
+
+    def mirror_view(sym, view):
+        return sym[akey](view)
+
+    def sample(params, obs, key, noise_op=None):
+        obs = {f: obs[f] for f in config.obs_keys}
+        if eval_obs is not None:
+            obs = eval_obs(obs)
+        return ddim_sample(model, params, obs, key, schedule, noise_op)
+
+    return Policy(config=config, init=init, prepare=prepare, apply=apply, bc_loss=bc_loss,
+                  mirror_inputs=mirror_inputs, mirror_targets=mirror_targets, sym_view=sym_view,
+                  mirror_view=mirror_view, sample=sample)

@@ -78,7 +78,8 @@ def prepare_data(demos: Demos, env: Env, policy_config: PolicyConfig,
         frames[policy_config.action_key] = frames.pop("action")
     normalizer = normalizer if normalizer is not None else fit_normalizer(frames, sym_raw)
     cfg = policy_config.with_data(frames[policy_config.action_key].shape[-1],
-                                  {f: frames[f].shape[-1] for f in fields})
+                                  {f: frames[f].shape[-1] for f in fields},
+                                  {f: tuple(frames[f].shape[1:]) for f in fields})
     dataset = make_dataset(normalizer.normalize(frames), ends, cfg)
     return Data(cfg, normalizer, normalized_symmetry(sym_raw, normalizer), dataset)
 
