@@ -14,7 +14,7 @@ from typing import Any, Literal
 
 import tyro
 
-from equibim_jax.config import ConfigError, EvalConfig, config_from_dict, find_config, load_config
+from equibim_jax.config import ConfigError, EvalConfig, TaskConfig, config_from_dict, find_config, load_config
 
 COMMANDS = ("demo", "generate", "experts", "pictures", "train", "eval", "equivariance", "symmetry", "robots", "tasks",
             "policies")
@@ -98,6 +98,53 @@ def _train_command(policy_default: Any, train_default: Any):
 
     Train.__annotations__["policy"] = type(policy_default)
     return Train
+
+
+def _online_train_command(policy_default: Any, train_default: Any):
+    from equibim_jax.training.online import OnlineConfig
+    from equibim_jax.training.train_step import TrainConfig
+
+    @dataclasses.dataclass
+    class OnlineTrain:
+        """Train a policy from fresh expert demonstrations streamed into an on-device ring
+        buffer: envs, buffer and update in one compiled loop, no dataset on disk. --policy
+        NAME picks the policy; rerunning resumes the parameters from --out."""
+
+        task: str
+        """A registered task (`equibim tasks`)."""
+        out: str
+        """Run folder: config.json, train.jsonl, ckpt/."""
+        policy: Any = policy_default
+        train: TrainConfig = train_default
+        online: OnlineConfig = dataclasses.field(default_factory=OnlineConfig)
+        options: tuple[str, ...] = ()
+        """Task options as option=value (e.g. side=left); obs defaults to the policy's fields."""
+        steps: int | None = None
+        """Shorthand for --train.total-steps (train.steps-per-dispatch is set to online.iterations x
+        online.grad-steps)."""
+        checkpoint_every: int | None = None
+        """Steps between checkpoints (default: at the end only)."""
+
+        def run(self) -> None:
+            from equibim_jax.evaluation.experts import parse_task_spec
+            from equibim_jax.training.online import train_online
+
+            spec = self.task + (":" + ",".join(self.options) if self.options else "")
+            name, opts = parse_task_spec(spec)
+            per = self.online.iterations * self.online.grad_steps  # steps of one dispatch
+            tc = dataclasses.replace(self.train, total_steps=self.steps or self.train.total_steps,
+                                     steps_per_dispatch=per)
+            s = train_online(TaskConfig(name, opts), self.out, self.policy, tc, self.online,
+                             checkpoint_every=self.checkpoint_every)
+            f = s["final"]
+            rate = (f"{s['env_steps_per_s']:.0f} env-steps/s with {s['train_steps_per_s']:.2f} train-steps/s"
+                    if s["env_steps_per_s"] is not None else "one dispatch only (no rate apart from compile)")
+            print(f"trained to step {s['steps']} on {s['episodes']} fresh expert episodes "
+                  f"({s['successes']} kept) in {s['train_s']:.1f} s ({rate}); bc {f.get('bc', float('nan')):.4f}, "
+                  f"sym {f.get('sym', float('nan')):.4f}; config {s['config']}, checkpoint {s['checkpoint']}")
+
+    OnlineTrain.__annotations__["policy"] = type(policy_default)
+    return OnlineTrain
 
 
 @dataclasses.dataclass
@@ -294,7 +341,12 @@ def _train(args: list[str]) -> None:
         policy = policy_config_class(name)()
     if policy is None:
         policy = policy_config_class("dp3")()
-    cmd = tyro.cli(_train_command(policy, train), args=args, prog="equibim train")
+    online = "--online" in args
+    if online:
+        args = [a for a in args if a != "--online"]
+        cmd = tyro.cli(_online_train_command(policy, train), args=args, prog="equibim train --online")
+    else:
+        cmd = tyro.cli(_train_command(policy, train), args=args, prog="equibim train")
     cmd.run()
 
 

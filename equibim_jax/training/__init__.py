@@ -17,6 +17,15 @@ from equibim_jax.training.losses import (
     sym_loss,
     sym_residual_norm,
 )
+from equibim_jax.training.online import (
+    OnlineConfig,
+    OnlineLoop,
+    RingBuffer,
+    buffer_from_frames,
+    empty_buffer,
+    make_online_train_loop,
+    sample_ring,
+)
 from equibim_jax.training.run import Run, TrainingDiverged, load_run, prepare_data, read_log, train
 from equibim_jax.training.train_step import (
     BoundTrainFn,
@@ -32,10 +41,10 @@ from equibim_jax.training.train_step import (
 )
 
 __all__ = [
-    "BoundTrainFn", "CheckpointError", "EmaConfig", "Run", "SYM_NORMS", "TrainConfig", "TrainState",
+    "BoundTrainFn", "CheckpointError", "EmaConfig", "OnlineConfig", "OnlineLoop", "RingBuffer", "Run", "SYM_NORMS", "TrainConfig", "TrainState",
     "TrainingDiverged", "base_key", "build_step_fn", "create_train_state", "ema_decay", "ema_update",
     "equivariance_error", "latest_step", "load_run", "make_optimizer", "make_train_loop",
     "make_train_step", "mirror_batch", "policy_loss", "prepare_data", "read_checkpoint_config",
     "read_log", "restore_checkpoint", "save_checkpoint", "sym_loss", "sym_ramp", "sym_residual_norm",
-    "train",
+    "train", "buffer_from_frames", "empty_buffer", "make_online_train_loop", "sample_ring",
 ]

@@ -215,7 +215,8 @@ def sym_ramp(step: Array, warmup_steps: int, start_step: int = 0) -> Array:
 def build_step_fn(
     train_config: TrainConfig,
     symmetry: Any = None,
-) -> Callable[[TrainState, Array, OnDeviceDataset], tuple[TrainState, dict[str, Array]]]:
+    sampler: Callable[[Any, Array, int], dict[str, Array]] = sample_batch,
+) -> Callable[[TrainState, Array, Any], tuple[TrainState, dict[str, Array]]]:
     """The raw (un-jitted) pure step ``(state, key, dataset) -> (state, metrics)``.
 
     Use it to compose larger jitted programs; otherwise prefer :func:`make_train_step` /
@@ -225,6 +226,9 @@ def build_step_fn(
       train_config: settings.
       symmetry: normalised-space ``S`` (``{field: op}``; see
         ``equibim_jax.data.normalized_symmetry``); required if the mirrored branch runs.
+      sampler: ``(dataset, key, batch_size) -> batch`` drawing the training windows
+        (default: :func:`~equibim_jax.data.windows.sample_batch` of an
+        :class:`OnDeviceDataset`; the online loop passes its ring buffer's).
     Returns:
       the step; ``metrics`` holds scalars ``bc, sym, total, grad_norm, ema_decay,
       sym_weight`` (the ``lambda`` in effect at that step).
@@ -235,7 +239,7 @@ def build_step_fn(
 
     def step_fn(state: TrainState, key: Array, dataset: OnDeviceDataset):
         k_batch, k_loss = jax.random.split(jax.random.fold_in(key, state.step))
-        batch = sample_batch(dataset, k_batch, tc.batch_size)
+        batch = sampler(dataset, k_batch, tc.batch_size)
         sym_scale = sym_ramp(state.step, min(tc.sym_warmup_steps, tc.total_steps), tc.sym_start_step)
 
         def loss_fn(params):
