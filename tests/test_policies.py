@@ -207,7 +207,7 @@ def _train(policy, dataset, sym, sym_weight, steps=150):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", sorted(CONFIGS))
+@pytest.mark.parametrize("name", sorted(set(CONFIGS) - {"dp_wrist"}))  # dp covers dp_wrist's code
 def test_short_training_with_sym_loss_lowers_equivariance_error(name):
     policy, sym, dataset, _ = prepared(name)
     batch, key = fixed_batch(dataset, n=16, seed=11)
@@ -219,8 +219,8 @@ def test_short_training_with_sym_loss_lowers_equivariance_error(name):
     assert errs[1.0] < 0.7 * errs[0.0], errs
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("name", sorted(CONFIGS))
+@pytest.mark.slow  # dp3's exact resume is in test_training.py
+@pytest.mark.parametrize("name", sorted(set(CONFIGS) - {"dp3", "dp_wrist"}))
 def test_checkpoint_resume_is_exact(name, tmp_path):
     policy, sym, dataset, norm = prepared(name)
     tc = TrainConfig(batch_size=8, total_steps=20, warmup_steps=2, steps_per_dispatch=5, seed=0)
