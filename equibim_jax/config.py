@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import types
 import typing
@@ -83,16 +84,25 @@ class EvalConfig:
       batch: episodes per compiled batch (at most 32 run at once on the CPU).
       mirror_noise: the mirrored episode also samples with the mirrored policy noise, so
         the pair is mirrored in all its randomness.
+      temporal_ensemble: ``None``: execute ``Ta`` actions of each predicted chunk. A float
+        ``k`` (ACT uses 0.01): ACT's temporal ensembling, the policy queried every step
+        and the overlapping predictions averaged with weights ``exp(-k i)``.
     """
 
     episodes: int = 32
     seed: int = 1
     batch: int = 32
     mirror_noise: bool = False
+    temporal_ensemble: float | None = None
 
     def __post_init__(self):
         if self.episodes < 1 or self.batch < 1:
             raise ConfigError(f"EvalConfig: episodes and batch must be >= 1, got {self.episodes}, {self.batch}")
+        if self.temporal_ensemble is not None and not math.isfinite(self.temporal_ensemble):
+            raise ConfigError(f"EvalConfig.temporal_ensemble must be a finite float or None, "
+                              f"got {self.temporal_ensemble}")
+        if self.temporal_ensemble is not None and self.mirror_noise:
+            raise ConfigError("EvalConfig: mirror_noise and temporal_ensemble cannot be combined")
 
 
 def config_to_dict(config: Any) -> Any:

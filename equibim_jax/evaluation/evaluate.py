@@ -37,7 +37,7 @@ def evaluate_policies(env: Env, policy: Policy, normalizer: Normalizer, params: 
         return {name: mirror_pair_gap(env, policy, normalizer, p, key, config.episodes, chunk=batch,
                                       progress=progress)
                 for name, p in params.items()}
-    rollout = make_policy_rollout(env, policy, normalizer)
+    rollout = make_policy_rollout(env, policy, normalizer, temporal_ensemble=config.temporal_ensemble)
     return {name: evaluate_sides(rollout, p, key, config.episodes, chunk=batch, progress=progress,
                                  desc=f"eval {name}")
             for name, p in params.items()}
