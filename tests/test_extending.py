@@ -180,6 +180,15 @@ def test_a_torn_last_log_line_does_not_break_resume(toy_data, registered, tmp_pa
     assert [r["step"] for r in read_log(log)] == [10, 20]
 
 
+def test_max_wall_s_stops_after_the_dispatch_that_crosses_it(toy_data, registered, tmp_path):
+    _, _, out = toy_data
+    tc = TrainConfig(batch_size=8, total_steps=40, steps_per_dispatch=10, sym_weight=0.0)
+    s = train(out / "demos.zarr", tmp_path / "run", registered, tc, progress=False, max_wall_s=0.0)
+    assert s["steps"] == 10
+    assert [r["step"] for r in read_log(tmp_path / "run" / "train.jsonl")] == [10]
+    assert load_run(tmp_path / "run").state.step == 10  # checkpointed where it stopped
+
+
 def test_option_strings_are_parsed_by_field_type():
     """Options given as strings (CLI, JSON) become the field's type, for every union form."""
     from typing import Optional

@@ -374,6 +374,7 @@ def train_online(
     *,
     checkpoint_every: int | None = None,
     progress: bool = True,
+    max_wall_s: float | None = None,
 ) -> dict:
     """Train a policy from a stream of fresh expert demonstrations (no dataset on disk).
 
@@ -394,6 +395,8 @@ def train_online(
       policy_config, train_config, online_config: settings. ``train_config.total_steps``
         must be a multiple of ``iterations * grad_steps`` (the steps of one dispatch).
       checkpoint_every: steps between checkpoints (default: only at the end).
+      max_wall_s: stop after the first dispatch that ends this many seconds after the
+        start (the preload round and the compile included), before ``total_steps``.
     Returns:
       a summary: steps, env steps, episodes and successes, timings (compile apart),
       env-steps/s and train-steps/s, paths.
@@ -427,7 +430,7 @@ def train_online(
 
     T = int(oc.episode_length if oc.episode_length is not None else default_length(env, oc.tail))
     roll = make_demo_rollout(env, T)
-    t0 = time.perf_counter()
+    t0 = t_start = time.perf_counter()
     _, traj = roll(jax.random.split(jax.random.key(oc.seed + 7919), oc.num_envs))
     succ = np.asarray(traj["success"])
     if not succ.any():
@@ -500,6 +503,8 @@ def train_online(
             bar.set_postfix(bc=f"{row['bc']:.3f}", sym=f"{row['sym']:.3f}", episodes=row["episodes"])
             if checkpoint_every and step % checkpoint_every == 0 and step < tc.total_steps:
                 save_checkpoint(ckpt, carry.train, normalizer, config, max_to_keep=2)
+            if max_wall_s is not None and time.perf_counter() - t_start >= max_wall_s:
+                break
     if latest_step(ckpt) != int(carry.train.step):
         save_checkpoint(ckpt, carry.train, normalizer, config, max_to_keep=2)
     rows = [json.loads(x) for x in log_path.read_text().splitlines() if x.strip()]

@@ -123,6 +123,7 @@ def train(
     checkpoint_every: int | None = None,
     progress: bool = True,
     desc: str = "train",
+    max_wall_s: float | None = None,
 ) -> dict:
     """Train a policy on a dataset; resumes from ``out_dir`` if it holds a checkpoint.
 
@@ -134,6 +135,9 @@ def train(
       env: the dataset's env, if already built (else rebuilt from the dataset metadata).
       normalizer: use this normaliser instead of fitting one (so two runs share it).
       checkpoint_every: steps between checkpoints (default: only at the end).
+      max_wall_s: stop after the first dispatch that ends this many seconds after the
+        start (compile included), before ``total_steps``; the learning-rate schedule is
+        still the one of ``total_steps``. ``None``: run to ``total_steps``.
     Returns:
       a summary: steps, timings, the last log row, paths.
     Raises:
@@ -196,6 +200,8 @@ def train(
             bar.set_postfix(bc=f"{row['bc']:.3f}", sym=f"{row['sym']:.3f}", equiv=f"{row['equiv_err']:.3f}")
             if checkpoint_every and step % checkpoint_every == 0 and step < total:
                 save_checkpoint(ckpt, state, prep.normalizer, config, max_to_keep=2)
+            if max_wall_s is not None and time.perf_counter() - t0 >= max_wall_s:
+                break
     if latest_step(ckpt) != int(state.step):
         save_checkpoint(ckpt, state, prep.normalizer, config, max_to_keep=2)
     return {"steps": int(state.step), "resumed_from": start, "train_s": time.perf_counter() - t0,
