@@ -13,6 +13,7 @@ import pytest
 from equibim_jax.policies import DPConfig, ImageObsConfig, VisionConfig, make_policy
 from equibim_jax.policies.dp import augment_images, eval_images
 from equibim_jax.policies.vision import (
+    Conv2d,
     center_crop,
     crop_at,
     mirror_crop_offsets,
@@ -24,6 +25,21 @@ from test_policies import CONFIGS, fixed_batch, prepared, symmetrised
 
 def flip(x):
     return jnp.flip(x, axis=-2)
+
+
+@pytest.mark.parametrize("k,stride,hw", [(3, 1, (9, 7)), (3, 2, (9, 8)), (1, 2, (7, 6)), (5, 2, (11, 10))])
+def test_im2col_conv_is_lax_conv(k, stride, hw):
+    x = jax.random.normal(jax.random.key(1), (2,) + hw + (3,))
+    a, b = Conv2d(4, k, stride, "im2col"), Conv2d(4, k, stride, "xla")
+    params = a.init(jax.random.key(2), x)
+    ya, yb = a.apply(params, x), b.apply(params, x)
+    assert ya.shape == (2, -(-hw[0] // stride), -(-hw[1] // stride), 4)
+    np.testing.assert_allclose(ya, yb, atol=1e-5)
+    ga = jax.grad(lambda p: jnp.sum(jnp.sin(a.apply(p, x))))(params)
+    gb = jax.grad(lambda p: jnp.sum(jnp.sin(b.apply(p, x))))(params)
+    np.testing.assert_allclose(ga["params"]["kernel"], gb["params"]["kernel"], atol=1e-4)
+    with pytest.raises(ValueError, match="odd kernel"):
+        Conv2d(4, 2).init(jax.random.key(0), x)
 
 
 def test_a_mirrored_crop_is_the_crop_at_the_mirrored_offset():
@@ -105,6 +121,8 @@ def test_one_encoder_per_camera_and_the_eval_crop():
 
 
 def test_config_errors():
+    with pytest.raises(ValueError, match="conv_impl"):
+        VisionConfig(conv_impl="fft")
     with pytest.raises(ValueError, match="image policy"):
         DPConfig(encoder=ImageObsConfig(image_keys=()))
     with pytest.raises(ValueError, match="reads nothing"):

@@ -232,7 +232,7 @@ class CameraTokens(nn.Module):
     @nn.compact
     def __call__(self, images: Array) -> Array:
         f = ResNetTrunk(self.channels, self.groups, name="trunk")(images)
-        f = nn.Conv(self.d_model, (1, 1), name="proj")(f)  # [N, h', w', d]
+        f = nn.Dense(self.d_model, name="proj")(f)  # [N, h', w', d]
         n, hh, ww, d = f.shape
         f = f + sinusoid_2d(hh, ww, d)[None]
         return f.reshape(n, hh * ww, d)

@@ -1,5 +1,8 @@
 """Image encoders and the random-crop augmentation of the image policies.
 
+* :class:`Conv2d`: a 2-D convolution with ``flax.linen.Conv``'s parameter layout, run
+  either as im2col plus one matmul (the default: on XLA:CPU a matmul and its transpose
+  are much faster than the convolution's backward pass) or as ``lax.conv_general_dilated``.
 * :class:`ResNetTrunk`: a small ResNet (GroupNorm instead of BatchNorm, as Diffusion
   Policy replaces it, so that the EMA and batch composition do not interact with batch
   statistics): a strided stem and one basic residual block per stage, each stage after
@@ -19,16 +22,18 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, Literal
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
 Array = Any
+ConvImpl = Literal["im2col", "xla"]
 
 __all__ = [
     "VisionConfig",
+    "Conv2d",
     "ResNetTrunk",
     "SpatialSoftmax",
     "ImageEncoder",
@@ -52,6 +57,8 @@ class VisionConfig:
       out: feature width per image.
       crop_ratio: side of the random training crop (and of the evaluation centre crop)
         as a fraction of the image side, in ``(0, 1]``; 1 turns cropping off.
+      conv_impl: ``"im2col"`` or ``"xla"`` (see :class:`Conv2d`); the parameters are the
+        same either way, so a checkpoint trained with one runs with the other.
     """
 
     channels: tuple[int, ...] = (16, 32, 64)
@@ -59,6 +66,7 @@ class VisionConfig:
     keypoints: int = 32
     out: int = 64
     crop_ratio: float = 0.875
+    conv_impl: ConvImpl = "im2col"
 
     def __post_init__(self):
         ch = tuple(int(c) for c in self.channels)
@@ -73,6 +81,9 @@ class VisionConfig:
                              f"{self.keypoints}, {self.out}")
         if not 0.0 < self.crop_ratio <= 1.0:
             raise ValueError(f"VisionConfig.crop_ratio must be in (0, 1], got {self.crop_ratio}")
+        if self.conv_impl not in ("im2col", "xla"):
+            raise ValueError(f"VisionConfig.conv_impl must be 'im2col' or 'xla', got "
+                             f"{self.conv_impl!r}")
 
     @property
     def downsample(self) -> int:
@@ -85,20 +96,62 @@ def crop_size(side: int, ratio: float) -> int:
     return max(1, int(round(side * ratio)))
 
 
+class Conv2d(nn.Module):
+    """2-D convolution without bias, ``[N, H, W, C_in] -> [N, ceil(H/s), ceil(W/s), C_out]``
+    for an odd ``k x k`` kernel with padding ``k // 2`` and stride ``s``.
+
+    The parameter ``kernel [k, k, C_in, C_out]`` has the layout of ``flax.linen.Conv``.
+    ``impl="im2col"`` gathers the ``k*k`` shifted views into ``[N, h, w, k*k*C_in]`` and
+    multiplies by the reshaped kernel; ``impl="xla"`` calls ``lax.conv_general_dilated``.
+    Both compute the same function.
+    """
+
+    features: int
+    kernel_size: int = 3
+    stride: int = 1
+    impl: ConvImpl = "im2col"
+
+    @nn.compact
+    def __call__(self, x: Array) -> Array:
+        k, s, c_in = self.kernel_size, self.stride, x.shape[-1]
+        if k % 2 != 1:
+            raise ValueError(f"Conv2d needs an odd kernel size, got {k}")
+        kernel = self.param("kernel", nn.initializers.lecun_normal(),
+                            (k, k, c_in, self.features), jnp.float32)
+        pad = k // 2
+        if self.impl == "xla":
+            return jax.lax.conv_general_dilated(
+                x, kernel, window_strides=(s, s), padding=[(pad, pad), (pad, pad)],
+                dimension_numbers=("NHWC", "HWIO", "NHWC"))
+        n, h, w, _ = x.shape
+        ho, wo = -(-h // s), -(-w // s)
+        if k == 1:
+            cols = x[:, : s * (ho - 1) + 1 : s, : s * (wo - 1) + 1 : s]
+        else:
+            xp = jnp.pad(x, ((0, 0), (pad, pad), (pad, pad), (0, 0)))
+            # View (i, j) holds x[r*s + i - pad, c*s + j - pad]; the concatenation order
+            # (i, j, c_in) matches kernel.reshape(k*k*C_in, C_out).
+            views = [xp[:, i : i + s * (ho - 1) + 1 : s, j : j + s * (wo - 1) + 1 : s]
+                     for i in range(k) for j in range(k)]
+            cols = jnp.concatenate(views, axis=-1)
+        return jnp.dot(cols.reshape(n * ho * wo, k * k * c_in),
+                       kernel.reshape(k * k * c_in, self.features)).reshape(n, ho, wo, self.features)
+
+
 class _BasicBlock(nn.Module):
     channels: int
     stride: int
     groups: int
+    impl: ConvImpl = "im2col"
 
     @nn.compact
     def __call__(self, x: Array) -> Array:
-        s = (self.stride, self.stride)
-        h = nn.Conv(self.channels, (3, 3), s, padding=1, use_bias=False)(x)
+        h = Conv2d(self.channels, 3, self.stride, self.impl)(x)
         h = jax.nn.relu(nn.GroupNorm(self.groups)(h))
-        h = nn.Conv(self.channels, (3, 3), padding=1, use_bias=False)(h)
+        h = Conv2d(self.channels, 3, 1, self.impl)(h)
         h = nn.GroupNorm(self.groups)(h)
         if self.stride != 1 or x.shape[-1] != self.channels:
-            x = nn.GroupNorm(self.groups)(nn.Conv(self.channels, (1, 1), s, use_bias=False)(x))
+            x = nn.GroupNorm(self.groups)(Conv2d(self.channels, 1, self.stride, self.impl)(x))
         return jax.nn.relu(h + x)
 
 
@@ -108,13 +161,14 @@ class ResNetTrunk(nn.Module):
 
     channels: tuple[int, ...]
     groups: int
+    impl: ConvImpl = "im2col"
 
     @nn.compact
     def __call__(self, x: Array) -> Array:
-        x = nn.Conv(self.channels[0], (3, 3), (2, 2), padding=1, use_bias=False)(x)
+        x = Conv2d(self.channels[0], 3, 2, self.impl)(x)
         x = jax.nn.relu(nn.GroupNorm(self.groups)(x))
         for i, c in enumerate(self.channels):
-            x = _BasicBlock(c, 1 if i == 0 else 2, self.groups)(x)
+            x = _BasicBlock(c, 1 if i == 0 else 2, self.groups, self.impl)(x)
         return x
 
 
@@ -130,7 +184,7 @@ class SpatialSoftmax(nn.Module):
     @nn.compact
     def __call__(self, feat: Array) -> Array:
         n, h, w, _ = feat.shape
-        logits = nn.Conv(self.keypoints, (1, 1))(feat).reshape(n, h * w, self.keypoints)
+        logits = nn.Dense(self.keypoints, name="logits")(feat).reshape(n, h * w, self.keypoints)
         attn = jax.nn.softmax(logits, axis=1)  # [N, hw, K]
         ys, xs = jnp.meshgrid(jnp.linspace(-1.0, 1.0, h), jnp.linspace(-1.0, 1.0, w), indexing="ij")
         grid = jnp.stack([xs.reshape(-1), ys.reshape(-1)], axis=-1)  # [hw, 2]
@@ -151,7 +205,7 @@ class ImageEncoder(nn.Module):
         cfg = self.config
         lead = images.shape[:-3]
         x = images.reshape((-1,) + images.shape[-3:])
-        x = ResNetTrunk(cfg.channels, cfg.groups, name="trunk")(x)
+        x = ResNetTrunk(cfg.channels, cfg.groups, cfg.conv_impl, name="trunk")(x)
         x = SpatialSoftmax(cfg.keypoints, name="keypoints")(x)
         x = nn.Dense(cfg.out, name="proj")(x)
         return x.reshape(lead + (cfg.out,))
