@@ -1,10 +1,14 @@
 """Online against offline training on the same wall-clock budget; writes JSON.
 
 Both arms train the same policy with the same ``TrainConfig`` and stop after the dispatch
-that crosses the budget (compiles included: the time a user waits):
+that crosses the budget, or at the end of the file's schedule (``total_steps``), whichever
+comes first (compiles included: the time a user waits). Task options, policy,
+train settings and the demo count come from the task's experiment file
+``tasks/<task>.json`` (for ``click_bell``: trained on the left side, ``qpos`` and a 64-point
+cloud, dp3 at the demo's width, batch 32, ``L_sym`` on):
 
-* ``offline``: ``equibim generate`` (50 expert demos, as in the paper), then the offline
-  train loop on them;
+* ``offline``: ``equibim generate`` (the file's demo count), then the offline train loop
+  on them;
 * ``online``: ``equibim train --online`` (expert envs, on-device ring buffer and the
   update in one compiled loop), its first preload round included.
 
@@ -30,11 +34,11 @@ from pathlib import Path
 import jax
 
 from equibim_jax._io import atomic_write_json
-from equibim_jax.config import EvalConfig, TaskConfig
+from equibim_jax.config import EvalConfig
 from equibim_jax.data.generate import generate_demos
 from equibim_jax.evaluation.evaluate import evaluate_run
-from equibim_jax.policies import DP3Config, EncoderConfig
-from equibim_jax.training import OnlineConfig, TrainConfig, train
+from equibim_jax.experiments.demo import load_demo_config
+from equibim_jax.training import OnlineConfig, train
 from equibim_jax.training.online import train_online
 
 
@@ -43,21 +47,22 @@ def main() -> None:
     p.add_argument("--out", required=True)
     p.add_argument("--task", default="click_bell")
     p.add_argument("--budget-s", type=float, default=600.0)
-    p.add_argument("--demos", type=int, default=50)
     p.add_argument("--num-envs", type=int, default=8)
     p.add_argument("--env-steps", type=int, default=2, help="env steps per env per gradient step (online)")
     p.add_argument("--eval-episodes", type=int, default=32)
     p.add_argument("--arms", nargs="+", default=["offline", "online"])
     args = p.parse_args()
 
-    policy = DP3Config(encoder=EncoderConfig(pc_key=None))  # state only: the env is the cost
-    iters = 50
-    tc = TrainConfig(total_steps=20 * iters * 100, steps_per_dispatch=iters, sym_weight=0.1)
+    cfg = load_demo_config(f"tasks/{args.task}.json")
+    task, policy, demos_n = cfg.task, cfg.policy, cfg.demos
+    iters = cfg.train.steps_per_dispatch
+    # the file's schedule for both arms: each stops at its end or at the budget, whichever
+    # comes first
+    tc = cfg.train
     oc = OnlineConfig(num_envs=args.num_envs, env_steps=args.env_steps, grad_steps=1, iterations=iters)
-    task = TaskConfig(args.task, {"obs": ["qpos"]})
-    settings = {"task": args.task, "budget_s": args.budget_s, "demos": args.demos,
-                "online": dataclasses.asdict(oc), "train": dataclasses.asdict(tc),
-                "policy": "dp3 state-only default size", "eval_episodes": args.eval_episodes}
+    settings = {"task": args.task, "task_options": dict(task.options), "budget_s": args.budget_s,
+                "demos": demos_n, "online": dataclasses.asdict(oc), "train": dataclasses.asdict(tc),
+                "policy": f"{policy.name} from tasks/{args.task}.json", "eval_episodes": args.eval_episodes}
     out = Path(args.out)
     results = json.loads(out.read_text()) if out.exists() else {}
     if results.get("settings") != json.loads(json.dumps(settings)):
@@ -73,7 +78,7 @@ def main() -> None:
         t0 = time.perf_counter()
         if arm == "offline":
             env = task.make_env()
-            demos, stats = generate_demos(env, jax.random.key(0), args.demos)
+            demos, stats = generate_demos(env, jax.random.key(cfg.seed), demos_n)
             gen_s = time.perf_counter() - t0
             s = train(demos, work / "run", policy, tc, env=env, max_wall_s=args.budget_s - gen_s)
             row = {"generate_s": gen_s, "demos": demos.n_episodes, "env_steps": int(stats["attempts"])

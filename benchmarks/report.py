@@ -643,10 +643,12 @@ def section_online_vs_offline(name: str, d: dict) -> str:
     cmd = (f"python benchmarks/online_vs_offline.py --task {st['task']} --budget-s {st['budget_s']:g} "
            f"--out benchmarks/results/{name}")
     intro = (
-        f"Both arms train {st['policy']} on `{st['task']}` (`qpos` observations, batch "
+        f"Both arms train {st['policy']} on `{st['task']}` (options "
+        f"{', '.join(f'`{k}={v}`' for k, v in st.get('task_options', {}).items())}; batch "
         f"{tc['batch_size']}, `L_sym` weight {tc['sym_weight']}, {tc['steps_per_dispatch']} steps per "
-        f"dispatch) and stop after the dispatch that crosses a {st['budget_s']:g} s wall-clock budget, "
-        f"compiles included. *offline*: generate {st['demos']} expert demos, then train on them; "
+        f"dispatch) and stop after the dispatch that crosses a {st['budget_s']:g} s wall-clock budget "
+        f"or at the end of the {tc['total_steps']}-step schedule, whichever comes first, compiles "
+        f"included. *offline*: generate {st['demos']} expert demos, then train on them; "
         f"*online*: `equibim train --online` with E = {oc['num_envs']} envs, {oc['env_steps']} env steps "
         f"and {oc['grad_steps']} gradient step per iteration, its preload round included. Each policy "
         f"is then evaluated closed loop on {st['eval_episodes']} episodes per side (outside the budget).")
