@@ -42,7 +42,8 @@ def _pop_option(args: list[str], flag: str) -> tuple[str | None, list[str]]:
 
 @dataclasses.dataclass
 class Generate:
-    """Roll out a task's scripted expert in batched MJX and save the successful episodes (zarr)."""
+    """Roll out a task's scripted expert in batched MJX and save the successful episodes (zarr);
+    with the `asymmetric_quality` shift the perturbed (bad) episodes are kept too."""
 
     task: str
     """Task name (`equibim tasks` lists them)."""

@@ -29,8 +29,9 @@ def make_demo_rollout(env: Env, length: int) -> Callable:
     Returns:
       ``roll(keys [B]) -> (final_state, traj)``, ``jit(vmap(...))`` of the task's expert in
       ``env`` for ``length`` steps; ``traj`` holds ``obs`` (dict of [B, T, ...]),
-      ``action`` [B, T, A], ``success`` [B, T] (latched) and, for a joint-action env,
-      ``action_ee`` [B, T, A_ee]. Build it once and pass it to :func:`generate_demos` to
+      ``action`` [B, T, A], ``success`` [B, T] (latched), ``perturbed`` [B] (the task's
+      ``info["perturbed"]``: the expert was corrupted on purpose; False for tasks without
+      it) and, for a joint-action env, ``action_ee`` [B, T, A_ee]. Build it once and pass it to :func:`generate_demos` to
       reuse the compiled program.
     """
     expert = make_expert(env)
@@ -39,6 +40,7 @@ def make_demo_rollout(env: Env, length: int) -> Callable:
 
     def rollout(k):
         final, traj = base(k)
+        traj = {**traj, "perturbed": jnp.asarray(final.info.get("perturbed", False), bool)}
         if record_ee:  # the same actions in the end-effector space
             traj = {**traj, "action_ee": env.ee_action_from_joint(traj["action"])}
         return final, traj
@@ -70,6 +72,10 @@ def generate_demos(
 ) -> tuple[Demos, dict]:
     """Roll out the task's scripted expert until ``n_episodes`` successes are collected.
 
+    Episodes whose expert was perturbed on purpose (the ``asymmetric_quality`` shift of the
+    robot-B tasks, ``info["perturbed"]``) are kept whether or not they succeed, as the bad
+    demonstrations of that shift, and count towards ``n_episodes``.
+
     Args:
       env: the task environment, built by ``equibim_jax.make_env`` (its ``obs`` fields
         are recorded; its task name and options go into the metadata).
@@ -89,7 +95,9 @@ def generate_demos(
       and, for a joint-action env, ``action_ee`` [E, T, A_ee] (the same actions in the
       end-effector space); and stats (attempts, successes, wall/compile times). The
       metadata record which rollout indices were kept (``episode_indices``, the ``i`` of
-      ``fold_in(key, i)``) and which failed and were skipped (``skipped_indices``).
+      ``fold_in(key, i)``), which failed and were skipped (``skipped_indices``), and per
+      kept episode whether it was perturbed (``perturbed``; ``Demos.success`` says whether
+      it succeeded).
     Raises:
       RuntimeError: fewer than ``n_episodes`` successes within ``max_attempts``.
     """
@@ -117,12 +125,13 @@ def generate_demos(
             compile_s = time.perf_counter() - tc
         attempts += chunk
         succ = np.asarray(traj["success"])  # [B, T] latched
+        pert = np.asarray(traj["perturbed"])  # [B]
         for b in range(chunk):
             ok = bool(succ[b, -1])
             successes += ok
             if len(kept) >= n_episodes:
                 continue
-            if not (ok or keep_failures):
+            if not (ok or keep_failures or pert[b]):
                 skipped.append(attempts - chunk + b)
                 continue
             first = int(np.argmax(succ[b])) if ok else t_len - 1
@@ -131,6 +140,7 @@ def generate_demos(
                 "obs": {k: v[b] for k, v in traj["obs"].items()}, "action": traj["action"][b],
                 "action_ee": traj["action_ee"][b] if record_ee else None,
                 "length": n, "success": ok, "index": attempts - chunk + b,
+                "perturbed": bool(pert[b]),
             })
             bar.update(1)
         bar.set_postfix(success_rate=f"{successes / attempts:.2f}")
@@ -149,14 +159,15 @@ def generate_demos(
         success=np.array([k["success"] for k in kept]),
         meta={"task": env.task, "task_options": config_to_dict(env.task_options),
               "episode_indices": [k["index"] for k in kept], "skipped_indices": skipped,
-              "attempts": attempts, "action_space": env.config.action, **(meta or {})},
+              "attempts": attempts, "action_space": env.config.action,
+              "perturbed": [k["perturbed"] for k in kept], **(meta or {})},
         action_ee=(np.stack([k["action_ee"][:horizon] for k in kept]).astype(np.float32)
                    if record_ee else None),
     )
     wall = time.perf_counter() - t0
     stats = {"attempts": attempts, "successes": successes, "success_rate": successes / attempts,
              "wall_s": wall, "first_chunk_s_incl_compile": compile_s, "kept": len(kept),
-             "skipped": len(skipped)}
+             "skipped": len(skipped), "perturbed": sum(k["perturbed"] for k in kept)}
     return demos, stats
 
 
