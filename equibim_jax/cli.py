@@ -400,7 +400,8 @@ class Experts:
 @dataclasses.dataclass
 class Pictures:
     """Head-camera pictures of every task's expert: a grid of first and last frames of an
-    episode and of its mirror image (OUT/tasks.png), and one GIF per task (OUT/gifs/)."""
+    episode and of its mirror image (OUT/tasks.png, or OUT/GRID), and one GIF per task
+    (OUT/gifs/)."""
 
     out: str = "docs"
     """Folder for tasks.png and gifs/."""
@@ -411,6 +412,8 @@ class Pictures:
     """Frame side in pixels."""
     cache: str = "results/pictures_cache"
     """Folder keeping each task's frames, so an interrupted run resumes."""
+    grid: str = "tasks.png"
+    """File name of the frame grid in --out (a .png name)."""
 
     def run(self) -> None:
         from equibim_jax.evaluation.pictures import make_pictures
@@ -423,13 +426,15 @@ class Pictures:
                     raise ValueError(f"task {t!r} has no scripted expert")
             if self.size < 16:
                 raise ValueError(f"--size must be at least 16 pixels, got {self.size}")
+            if not self.grid.endswith(".png") or "/" in self.grid or self.grid == ".png":
+                raise ValueError(f"--grid must be a file name ending in .png, got {self.grid!r}")
         except ValueError as e:
             raise ConfigError(str(e)) from None
-        summary = make_pictures(tasks, self.out, self.seed, self.size, self.cache)
+        summary = make_pictures(tasks, self.out, self.seed, self.size, self.cache, grid=self.grid)
         for t, s in summary.items():
             print(f"{t}: episode {'success' if s['success'] else 'FAILURE'}, mirrored "
                   f"{'success' if s['mirror_success'] else 'FAILURE'}; {s['gif']} ({s['gif_bytes'] / 1e3:.0f} kB)")
-        print(f"wrote {self.out}/tasks.png")
+        print(f"wrote {self.out}/{self.grid}")
 
 
 def _usage() -> str:

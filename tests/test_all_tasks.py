@@ -6,9 +6,10 @@ images, coordinate by coordinate); a few starts and their mirror images are vali
 interpenetration, objects where the task put them, success false.
 
 Slow suite, one compiled rollout program per task: ``jit`` reset, mirror and step; shapes
-and no NaN; the expert's success rate on 200 seeded starts (>= 95 %); and ``S`` maps a
-recorded expert demo (observations and actions) onto the demo the expert records from
-the mirrored start.
+and no NaN; the expert's success rate (>= 95 %) on the first 50 of the 200 seeded starts
+that ``equibim experts --episodes 200`` runs (its JSON, committed under ``docs/results/``,
+holds the rate on all 200); and ``S`` maps a recorded expert demo (observations and
+actions) onto the demo the expert records from the mirrored start.
 """
 
 import jax
@@ -78,14 +79,15 @@ def test_initial_distribution_is_mirror_symmetric_and_valid(task):
 
 
 # ------------------------------------------------------------------------------ slow
-N_SEEDS = 200
-N_MIRROR = 25  # of the 200 starts, the first 25 are also run from their mirror images
+N_SEEDS = 50  # the first 50 of `equibim experts`' 200 starts (all 200: `equibim experts`)
+N_MIRROR = 25  # of these starts, the first 25 are also run from their mirror images
 
 
 @pytest.mark.slow
 def test_expert_success_and_mirror_equivariance(task):
-    """200 seeded starts (the keys of ``equibim experts --seed 2024``), run to the end of the
-    expert's script, plus the mirror images of the first 25: one compiled program."""
+    """The first N_SEEDS of the 200 seeded starts of ``equibim experts --seed 2024``, run to
+    the end of the expert's script, plus the mirror images of the first 25: one compiled
+    program."""
     env = make_env(task, obs=("qpos", "ee"))
     expert = make_expert(env)
     length = expert.horizon + 10
@@ -102,7 +104,7 @@ def test_expert_success_and_mirror_equivariance(task):
         final, traj = chunked_vmap(roll.from_state, chunk=batch)(s0)
         return final.info["success"], traj
 
-    keys = jax.random.split(jax.random.key(2024), N_SEEDS)
+    keys = jax.random.split(jax.random.key(2024), 200)[:N_SEEDS]
     succ, trajs = [], []
     for i in range(0, N_SEEDS, batch):
         s0, s0m = starts(keys[i : i + batch])

@@ -35,3 +35,27 @@ def test_expert_frames_show_the_mirror_image():
     # the head camera is on the mirror plane: the mirrored start is the flipped start image
     np.testing.assert_array_equal(f["mirror_frames"][0], f["frames"][0][:, ::-1])
     assert np.abs(f["frames"][-1].astype(int) - f["frames"][0]).mean() > 0.5  # the scene moved
+
+
+def test_make_pictures_reuses_cached_frames_and_names_the_grid(tmp_path):
+    """Frames in the cache are used as they are (no simulation); the grid gets its name."""
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    for i, task in enumerate(("banana_handover", "chicken_hook")):
+        np.savez_compressed(cache / f"{task}_0_32.npz", **_frames(seed=i))
+    out = tmp_path / "docs"
+    summary = pics.make_pictures(["banana_handover", "chicken_hook"], out, seed=0, image_size=32,
+                                 cache_dir=cache, progress=False, grid="tasks_robot_b.png")
+    assert set(summary) == {"banana_handover", "chicken_hook"}
+    assert summary["banana_handover"]["success"] is True and summary["chicken_hook"]["mirror_success"] is False
+    assert (out / "tasks_robot_b.png").exists() and not (out / "tasks.png").exists()
+    assert all((out / "gifs" / f"{t}.gif").stat().st_size > 0 for t in summary)
+
+
+@pytest.mark.parametrize("grid", ["tasks.jpg", "sub/tasks.png", ".png"])
+def test_pictures_cli_refuses_a_bad_grid_name(grid, capsys):
+    from equibim_jax.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["pictures", "--grid", grid, "--tasks", "click_bell"])
+    assert "--grid must be a file name ending in .png" in capsys.readouterr().err

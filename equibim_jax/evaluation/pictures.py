@@ -143,8 +143,9 @@ def task_grid(frames: dict[str, dict], out: str | Path, dpi: int = 100) -> Path:
 
 
 def make_pictures(tasks: Sequence[str] | Iterable[str], out_dir: str | Path, seed: int = 0,
-                  image_size: int = 128, cache_dir: str | Path | None = None, progress: bool = True) -> dict:
-    """:func:`expert_frames` for each task, then ``out_dir/tasks.png`` and
+                  image_size: int = 128, cache_dir: str | Path | None = None, progress: bool = True,
+                  grid: str = "tasks.png") -> dict:
+    """:func:`expert_frames` for each task, then the grid ``out_dir/<grid>`` and
     ``out_dir/gifs/<task>.gif``. With ``cache_dir``, each task's frames are kept there
     (``<task>_<seed>_<size>.npz``) and reused, so an interrupted run resumes.
 
@@ -170,5 +171,5 @@ def make_pictures(tasks: Sequence[str] | Iterable[str], out_dir: str | Path, see
         gif = task_gif(f, out_dir / "gifs" / f"{task}.gif")
         summary[task] = {"success": f["success"], "mirror_success": f["mirror_success"],
                          "gif": str(gif), "gif_bytes": gif.stat().st_size}
-    task_grid(frames, out_dir / "tasks.png")
+    task_grid(frames, out_dir / grid)
     return summary
