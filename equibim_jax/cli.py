@@ -14,6 +14,7 @@ from typing import Any, Literal
 
 import tyro
 
+from equibim_jax._sharding import maybe_initialize_distributed
 from equibim_jax.config import ConfigError, EvalConfig, TaskConfig, config_from_dict, find_config, load_config
 
 COMMANDS = ("demo", "generate", "experts", "pictures", "train", "eval", "equivariance", "symmetry", "robots", "tasks",
@@ -453,6 +454,9 @@ def _usage() -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
+    # First, before any JAX backend starts: join a multi-process run if the environment
+    # asks for one (EQUIBIM_JAX_DISTRIBUTED=1 or JAX_COORDINATOR_ADDRESS; docs/scaling.md).
+    maybe_initialize_distributed()
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help"):
         print(_usage())

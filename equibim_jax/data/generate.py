@@ -1,7 +1,9 @@
 """Demonstration generation: the scripted expert in batched MJX, successful episodes kept.
 
 One compiled ``jit(vmap(rollout))`` runs a chunk of episodes; Python only loops over chunks
-(with a progress bar) and copies each finished chunk to the host once.
+(with a progress bar) and copies each finished chunk to the host once. Each chunk is split
+over every visible device (``equibim_jax._sharding``); on several devices ``chunk`` is
+rounded up to a multiple of the device count.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
+from equibim_jax._sharding import data_mesh, is_main_process, round_up, shard_batch, to_host
 from equibim_jax.config import config_to_dict
 from equibim_jax.data.dataset import Demos, save
 from equibim_jax.experts import make_rollout
@@ -83,11 +86,12 @@ def generate_demos(
         function of the key and the arguments.
       n_episodes: successful episodes to keep.
       length: control steps per rollout (default: :func:`default_length`).
-      chunk: episodes per compiled batch.
+      chunk: episodes per compiled batch, split over the devices; rounded up to a multiple
+        of the device count (the extra rollouts are real attempts, recorded as such).
       keep_failures: keep failed episodes too (marked ``success=False``).
       max_attempts: stop after this many rollouts (default ``4 * n_episodes``).
       tail: steps kept after the first success (the expert's release and retreat).
-      progress: show a progress bar.
+      progress: show a progress bar (in process 0 only).
       meta: extra metadata stored with the dataset.
       rollout: a :func:`make_demo_rollout` of ``env`` to reuse (its length wins).
     Returns:
@@ -103,24 +107,28 @@ def generate_demos(
     """
     if n_episodes < 1:
         raise ValueError(f"n_episodes must be >= 1, got {n_episodes}")
+    if chunk < 1:
+        raise ValueError(f"chunk must be >= 1, got {chunk}")
     if rollout is None:
         rollout = make_demo_rollout(env, int(length or default_length(env, tail)))
     roll = rollout
     t_len = int(roll.length)
     record_ee = env.config.action == "joint"
     max_attempts = max_attempts or 4 * n_episodes
+    mesh = data_mesh()
+    chunk = round_up(chunk, mesh)
     kept: list[dict] = []
     skipped: list[int] = []
     attempts = successes = 0
     t0 = time.perf_counter()
     compile_s = None
-    bar = tqdm(total=n_episodes, desc="demos", unit="ep", disable=not progress)
+    bar = tqdm(total=n_episodes, desc="demos", unit="ep", disable=not (progress and is_main_process()))
     while len(kept) < n_episodes and attempts < max_attempts:
         idx = jnp.arange(attempts, attempts + chunk)
         keys = jax.vmap(lambda i: jax.random.fold_in(key, i))(idx)
         tc = time.perf_counter()
-        final, traj = roll(keys)
-        traj = jax.device_get(traj)
+        _, traj = roll(shard_batch(keys, mesh))
+        traj = to_host(traj)
         if compile_s is None:
             compile_s = time.perf_counter() - tc
         attempts += chunk

@@ -7,6 +7,10 @@ side of an evaluation starts each episode from the mirror image (``env.mirror_st
 the trained side's initial state, whatever the task. ACT's temporal ensembling (query
 every step, average the overlapping chunks' actions) is the ``temporal_ensemble`` option
 of :func:`make_policy_rollout` (:func:`ensemble_step`).
+
+Evaluation is data-parallel: each batch of episodes is split over every visible device
+(``equibim_jax._sharding``), the parameters replicated, and the batch size rounded up to a
+multiple of the device count (the extra episodes are padding, dropped from the results).
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
+from equibim_jax._sharding import data_mesh, replicate, round_up, shard_batch, to_host
 from equibim_jax.evaluation.stats import wilson_interval
 from equibim_jax.policies.base import Policy, predict_action
 from equibim_jax.sim.env import Env
@@ -268,7 +273,8 @@ def _run_paired(run: Callable, params: Any, key: jax.Array, n_episodes: int, chu
                 desc: str) -> tuple[dict, float]:
     """Run ``run(params, keys [c], mirrored [c])`` (a ``jit(vmap(rollout))``) over
     ``n_episodes`` keys for each side, in padded batches of ``chunk`` (one shape, one
-    compile). Returns ``({side: {field: np [n_episodes, ...]}}, wall seconds)``."""
+    compile), each split over the data mesh (``chunk`` rounded up to a multiple of the
+    device count). Returns ``({side: {field: np [n_episodes, ...]}}, wall seconds)``."""
     bad = [s for s in sides if s not in ("trained", "mirrored")]
     if bad or not sides:
         raise ValueError(f"sides must be a non-empty subset of ('trained', 'mirrored'), got {sides}")
@@ -278,15 +284,19 @@ def _run_paired(run: Callable, params: Any, key: jax.Array, n_episodes: int, chu
     all_keys = jnp.concatenate([keys] * len(sides))
     flags = jnp.concatenate([jnp.full((n_episodes,), s == "mirrored") for s in sides])
     total = all_keys.shape[0]
-    chunk = min(chunk, total)
+    mesh = data_mesh()
+    chunk = round_up(min(chunk, total), mesh)
     pad = (-total) % chunk  # pad the last batch (same shape -> no second compile)
-    all_keys = jnp.concatenate([all_keys, all_keys[:pad]])
-    flags = jnp.concatenate([flags, flags[:pad]])
+    fill = np.arange(pad) % total  # repeats the first episodes (pad may exceed total)
+    all_keys = jnp.concatenate([all_keys, all_keys[fill]])
+    flags = jnp.concatenate([flags, flags[fill]])
+    params = replicate(params, mesh)
     t0 = time.perf_counter()
     got = {f: [] for f in fields}
     with tqdm(total=total, desc=desc, unit="ep", disable=not progress) as bar:
         for i in range(0, total + pad, chunk):
-            out = jax.device_get(run(params, all_keys[i : i + chunk], flags[i : i + chunk]))
+            batch = shard_batch((all_keys[i : i + chunk], flags[i : i + chunk]), mesh)
+            out = to_host(run(params, *batch))
             for f in fields:
                 got[f].append(np.asarray(out[f]))
             bar.update(min(chunk, total - i))

@@ -244,7 +244,9 @@ class Env:
                 f"physics is only approximately mirror-equivariant:\n{self.sym.dynamics.describe()}",
                 stacklevel=2,
             )
-        self.mjx_model = mjx.put_model(model)
+        # MJX's default device is jax.devices()[0], which in a multi-process run belongs to
+        # process 0; every process keeps its model on its own first device.
+        self.mjx_model = mjx.put_model(model, device=jax.local_devices()[0])
 
         m = model
         key_id = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, self.info.home_key)

@@ -369,7 +369,8 @@ def _make_side_fk(model, info: RobotInfo, backend: str, mjx_model=None):
             return _chain_fk(tab, qpos[qadr])
 
     elif backend == "mjx":
-        mm = mjx_model if mjx_model is not None else mjx.put_model(model, impl="jax")
+        mm = mjx_model if mjx_model is not None else mjx.put_model(model, impl="jax",
+                                                                    device=jax.local_devices()[0])
         site_ids = jnp.asarray(ch.site_ids)
         jnt_ids = jnp.asarray(ch.jnt_ids)
 

@@ -636,7 +636,8 @@ def make_renderer(
 
     m = mjx_model
     if m is None and cfg.ray_impl == "mjx":
-        m = mjx.put_model(mj_model, impl="jax")
+        # On this process's first device (MJX's default is the global device 0).
+        m = mjx.put_model(mj_model, impl="jax", device=jax.local_devices()[0])
     dirs_cam = jnp.asarray(camera_rays(cfg.width, cfg.height, float(mj_model.cam_fovy[cam_id])))
     zscale = -dirs_cam[..., 2]  # z-depth per unit of ray length
     colors = jnp.asarray(_geom_colors(mj_model))

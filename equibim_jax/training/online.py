@@ -21,6 +21,9 @@ from a dataset whose episodes are the buffer's valid slots in slot order (same p
 same uniform law over windows, same random numbers), so a buffer preloaded with a fixed
 dataset (:func:`buffer_from_frames`) and ``env_steps = 0`` trains bit for bit as the
 offline loop does.
+
+Unlike the offline loop, this one is not data-parallel: it runs on the default device
+whatever the device count (``config.json`` records ``"mesh": {"data": 1}``).
 """
 
 from __future__ import annotations
@@ -462,7 +465,9 @@ def train_online(
         state, normalizer, _ = restore_checkpoint(ckpt, state, expected_config=config)
         start = int(state.step)
     sym = normalized_symmetry(sym_raw, normalizer)
-    save_config(out / "config.json", {**config, "devices": jax.device_count()})
+    # The online loop is not data-parallel: it runs on the default device whatever the
+    # device count, so its mesh is one device.
+    save_config(out / "config.json", {**config, "devices": jax.device_count(), "mesh": {"data": 1}})
     buf = buffer_from_frames(normalizer.normalize(frames), ends, cfg, slots=oc.slots, slot_len=T,
                              first_slot=oc.num_envs)
     loop = make_online_train_loop(env, tc, oc, normalizer, sym if tc.uses_mirror else None)

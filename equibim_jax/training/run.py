@@ -3,11 +3,18 @@
 A run folder holds ``config.json`` (the resolved task, policy and train configs),
 ``train.jsonl`` (one JSON row per dispatch of ``steps_per_dispatch`` steps) and ``ckpt/``
 (orbax checkpoints). Training resumes exactly from the last checkpoint of the folder.
+
+The train loop is data-parallel over every visible device (``equibim_jax._sharding``);
+``config.json`` records the device count and the mesh shape, which a resumed run may
+change. In a multi-process run every process trains and saves checkpoints together (orbax
+coordinates them; the run folder must be on a shared file system), and only process 0
+writes ``config.json``, ``train.jsonl`` and the progress bar.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import time
 import warnings
 from pathlib import Path
@@ -18,6 +25,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from equibim_jax._io import atomic_write_bytes
+from equibim_jax._sharding import is_main_process, mesh_shape
 from equibim_jax.config import TaskConfig, config_from_dict, save_config
 from equibim_jax.data.dataset import Demos, load
 from equibim_jax.data.generate import env_from_meta
@@ -164,23 +172,25 @@ def train(
         prep = prep._replace(normalizer=saved_norm, sym=normalized_symmetry(
             env.symmetry_ops(tuple(prep.policy_config.obs_keys), prep.policy_config.action_key), saved_norm))
         start = int(state.step)
-    save_config(out / "config.json", {
-        **config, "data": {"path": str(data) if not isinstance(data, Demos) else None,
-                           "episodes": demos.n_episodes, "steps": demos.n_steps},
-        "devices": jax.device_count()})
+    lead = is_main_process()  # the one process that writes config.json, train.jsonl, the bar
+    if lead:
+        save_config(out / "config.json", {
+            **config, "data": {"path": str(data) if not isinstance(data, Demos) else None,
+                               "episodes": demos.n_episodes, "steps": demos.n_steps},
+            "devices": jax.device_count(), "mesh": mesh_shape()})
     loop = make_train_loop(tc, prep.dataset, prep.sym if tc.uses_mirror else None)
     probe = _probe(policy, prep.dataset, prep.sym)
     key = base_key(tc)
     log_path = out / "train.jsonl"
-    if start and log_path.exists():  # drop rows logged after the checkpoint we resume from
+    if lead and start and log_path.exists():  # drop rows logged after the checkpoint we resume from
         rows = [r for r in read_log(log_path) if r.get("step", 0) <= start]
         atomic_write_bytes(log_path, "".join(json.dumps(r) + "\n" for r in rows).encode())
     total, k = tc.total_steps, tc.steps_per_dispatch
     t0 = time.perf_counter()
     compile_s = None
     row: dict[str, Any] = {}
-    with open(log_path, "a" if start else "w") as log, tqdm(
-            total=total, initial=start, desc=desc, unit="step", disable=not progress) as bar:
+    with open(log_path if lead else os.devnull, "a" if start else "w") as log, tqdm(
+            total=total, initial=start, desc=desc, unit="step", disable=not (progress and lead)) as bar:
         while int(state.step) < total:
             tc0 = time.perf_counter()
             prev = state

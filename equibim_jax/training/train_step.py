@@ -8,6 +8,11 @@ checkpoint (which stores ``step``) continues the same stream exactly.
 The dataset (``equibim_jax.data.windows.OnDeviceDataset``) is passed to the jitted
 function as an argument, not captured as a constant, which would bake it into the
 compiled program.
+
+Data parallelism: :func:`make_train_step` and :func:`make_train_loop` run on the data mesh
+of every visible device (``equibim_jax._sharding``). The state, key and dataset are
+replicated, each step's sampled batch is split along its batch axis, and XLA averages the
+gradient over devices. On one device nothing changes.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from equibim_jax._sharding import check_divisible, constrain_batch, constrain_replicated, data_mesh, replicate
 from equibim_jax._xla_options import train_compiler_options
 from equibim_jax.data.windows import OnDeviceDataset, sample_batch
 from equibim_jax.policies.base import Policy
@@ -216,6 +222,7 @@ def build_step_fn(
     train_config: TrainConfig,
     symmetry: Any = None,
     sampler: Callable[[Any, Array, int], dict[str, Array]] = sample_batch,
+    mesh: Any = None,
 ) -> Callable[[TrainState, Array, Any], tuple[TrainState, dict[str, Array]]]:
     """The raw (un-jitted) pure step ``(state, key, dataset) -> (state, metrics)``.
 
@@ -229,17 +236,21 @@ def build_step_fn(
       sampler: ``(dataset, key, batch_size) -> batch`` drawing the training windows
         (default: :func:`~equibim_jax.data.windows.sample_batch` of an
         :class:`OnDeviceDataset`; the online loop passes its ring buffer's).
+      mesh: a data mesh (``equibim_jax._sharding.data_mesh``): the sampled batch
+        ``[B, ...]`` is split over its ``"data"`` axis and the new state and metrics kept
+        replicated. ``None`` (the default) or one device: no sharding.
     Returns:
       the step; ``metrics`` holds scalars ``bc, sym, total, grad_norm, ema_decay,
       sym_weight`` (the ``lambda`` in effect at that step).
     """
     if train_config.uses_mirror and symmetry is None:
         raise ValueError("sym_weight > 0 or mirror_augment needs a symmetry")
+    check_divisible(train_config.batch_size, mesh, "TrainConfig.batch_size")
     tc = train_config
 
     def step_fn(state: TrainState, key: Array, dataset: OnDeviceDataset):
         k_batch, k_loss = jax.random.split(jax.random.fold_in(key, state.step))
-        batch = sampler(dataset, k_batch, tc.batch_size)
+        batch = constrain_batch(sampler(dataset, k_batch, tc.batch_size), mesh)
         sym_scale = sym_ramp(state.step, min(tc.sym_warmup_steps, tc.total_steps), tc.sym_start_step)
 
         def loss_fn(params):
@@ -260,7 +271,7 @@ def build_step_fn(
         )
         metrics = dict(terms, grad_norm=optax.tree.norm(grads), ema_decay=decay,
                        sym_weight=sym_scale * tc.sym_weight)
-        return new_state, metrics
+        return constrain_replicated((new_state, metrics), mesh)
 
     return step_fn
 
@@ -271,47 +282,60 @@ class BoundTrainFn:
 
     Attributes:
       fn: the jitted function (its own cache; compiled on first call).
-      dataset: the on-device dataset passed to ``fn`` as an argument.
+      dataset: the on-device dataset passed to ``fn`` as an argument (replicated on
+        ``mesh``).
+      mesh: the data mesh the step runs on; the state and key are replicated on it before
+        each call (a no-op once they are, and for ``None`` or one device).
     """
 
     fn: Callable
     dataset: OnDeviceDataset
+    mesh: Any = None
 
     def __call__(self, state: TrainState, key: Array):
         """``(state, key) -> (state, metrics)``."""
-        return self.fn(state, key, self.dataset)
+        return self.fn(*replicate((state, key), self.mesh), self.dataset)
 
     def lower(self, state: TrainState, key: Array):
         """Ahead-of-time lowering (``.compile()`` it; call the result with
         ``(state, key, dataset)``), e.g. to time compilation or read ``cost_analysis()``."""
-        return self.fn.lower(state, key, self.dataset)
+        return self.fn.lower(*replicate((state, key), self.mesh), self.dataset)
 
 
 def make_train_step(train_config: TrainConfig, dataset: OnDeviceDataset,
                     symmetry: Any = None) -> BoundTrainFn:
-    """A jitted single step ``train_step(state, key) -> (state, metrics)``.
+    """A jitted single step ``train_step(state, key) -> (state, metrics)``, data-parallel
+    over every visible device (module docstring).
 
     Args:
       dataset: on-device normalised data (passed to the jitted function as an argument).
       symmetry: normalised-space ``S``.
     Returns:
       the step; ``metrics`` are scalars ``{bc, sym, total, grad_norm, ema_decay, sym_weight}``.
+    Raises:
+      ValueError: ``batch_size`` is not a multiple of the device count.
     """
-    step = build_step_fn(train_config, symmetry)
-    return BoundTrainFn(jax.jit(step, compiler_options=train_compiler_options()), dataset)
+    mesh = data_mesh()
+    step = build_step_fn(train_config, symmetry, mesh=mesh)
+    return BoundTrainFn(jax.jit(step, compiler_options=train_compiler_options()),
+                        replicate(dataset, mesh), mesh)
 
 
 def make_train_loop(train_config: TrainConfig, dataset: OnDeviceDataset, symmetry: Any = None,
                     num_steps: int | None = None) -> BoundTrainFn:
-    """A jitted ``train_k_steps(state, key) -> (state, metrics)`` running K steps in a scan.
+    """A jitted ``train_k_steps(state, key) -> (state, metrics)`` running K steps in a scan,
+    data-parallel over every visible device (module docstring).
 
     Args:
       num_steps: ``K``; defaults to ``train_config.steps_per_dispatch``.
     Returns:
       the loop; each metric is ``[K]``.
+    Raises:
+      ValueError: ``batch_size`` is not a multiple of the device count.
     """
     k_steps = train_config.steps_per_dispatch if num_steps is None else num_steps
-    step_fn = build_step_fn(train_config, symmetry)
+    mesh = data_mesh()
+    step_fn = build_step_fn(train_config, symmetry, mesh=mesh)
 
     @functools.partial(jax.jit, compiler_options=train_compiler_options())
     def loop(state, key, data):
@@ -320,4 +344,4 @@ def make_train_loop(train_config: TrainConfig, dataset: OnDeviceDataset, symmetr
 
         return jax.lax.scan(body, state, None, length=k_steps)
 
-    return BoundTrainFn(loop, dataset)
+    return BoundTrainFn(loop, replicate(dataset, mesh), mesh)
