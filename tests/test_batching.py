@@ -24,6 +24,7 @@ def test_chunked_vmap_matches_vmap_with_broadcast_and_pytrees():
         chunked_vmap(f, 5, in_axes=(0, None))(xs, w)
 
 
+@pytest.mark.slow  # compiles a 64-env reset (the default suite keeps its budget)
 def test_vmapenv_resets_64_envs():
     """Plain vmap of mjx.forward over 64 envs hangs forever on 2 cores with jaxlib 0.10.2."""
     from equibim_jax.sim.env import Env, EnvConfig, VmapEnv

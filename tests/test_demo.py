@@ -119,6 +119,7 @@ def jax_leaves(tree):
     return [np.asarray(x) for x in jax.tree.leaves(tree)]
 
 
+@pytest.mark.slow  # compiles its own train and eval programs (the default suite keeps its budget)
 def test_cli_train_resume_is_exact_and_eval(tiny_demo, tmp_path, capsys):
     out, _ = tiny_demo
     data = str(out / "demo" / "demos.zarr")

@@ -20,7 +20,8 @@ def _env(robot="robot_a", action="joint"):
                BoxScene(side="both"))
 
 
-@pytest.mark.parametrize("robot", robot_names())
+@pytest.mark.parametrize("robot", [pytest.param(r, marks=pytest.mark.slow) if r != "robot_a" else r
+                                   for r in robot_names()])
 def test_reset_step_shapes_no_nan_and_vmap(robot):
     env = _env(robot)
     venv = VmapEnv(env)

@@ -119,6 +119,7 @@ def test_registries_list_the_toys(registered):
         eb.make_env("toy_close_gripper", closed_below="not a number")
 
 
+@pytest.mark.slow  # two 300-step trainings and an evaluation; the CLI test below runs the same path short
 def test_toy_task_and_policy_train_and_evaluate_end_to_end(toy_data, registered, tmp_path):
     env, demos, out = toy_data
     assert demos.meta["task"] == "toy_close_gripper" and demos.meta["task_options"]["side"] == "left"

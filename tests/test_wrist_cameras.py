@@ -145,6 +145,7 @@ def test_wrist_views_see_fingers_and_objects(env, mirrored):
     assert obj_pixels.max() >= 10
 
 
+@pytest.mark.slow  # compiles the wrist-camera step (the default suite keeps its budget)
 def test_reset_and_step_jit(env):
     s = jax.jit(env.reset)(jax.random.key(0))
     s2 = jax.jit(env.step)(s, s.obs["qpos"])
