@@ -701,6 +701,17 @@ running):
   of about 1 + n / B.
 - **Inference** is not a bound: `dp` samples a chunk (10 DDIM steps, batch 1) in under
   10 ms.
+
+Online against offline (`online_vs_offline_2core_cpu.json`): on `click_bell` with the
+experiment file's 48 demos and 7,000-step schedule, offline training wins on a 600 s
+budget. It generates its demos in under a minute and then runs the whole schedule in
+about half the budget (about 30 steps/s), while the online loop advances 8 expert envs
+by 2 steps for every gradient step, reaches about 12 gradient steps/s, and stops at
+5,600 steps when the budget ends, with lower success on both sides. The online loop pays
+for physics on every gradient step; a fixed set of demos pays for it once. It can only
+come out ahead where demos, not gradient steps, are what limits the policy: a dataset too
+small for the schedule (the online loop sees hundreds of fresh episodes), or a budget
+large enough to absorb the physics. Neither holds here, and neither was measured.
 """
 
 
