@@ -47,7 +47,7 @@ from flax import struct
 from equibim_jax.sim.env import Env, State
 from equibim_jax.sim.ik import make_ee_fk, make_ik, mat_to_rot6d
 
-__all__ = ["R_DOWN_6D", "Expert", "WaypointState", "make_bimanual_waypoint_expert",
+__all__ = ["R_DOWN_6D", "Expert", "WaypointState", "check_expert_config", "make_bimanual_waypoint_expert",
            "make_waypoint_expert", "pad_tip_below_ee"]
 
 R_DOWN_6D = np.array([0.0, 0.0, -1.0, 0.0, 1.0, 0.0], np.float32)
@@ -89,6 +89,23 @@ class WaypointState:
     q: jax.Array
     waypoints: jax.Array
     active: jax.Array
+
+
+def check_expert_config(config: Any, phases: tuple[str, ...], positive: tuple[str, ...] = (),
+                        nonnegative: tuple[str, ...] = ()) -> None:
+    """Check a phased expert config: ``config.durations`` holds one positive step count per
+    phase but the last of ``phases``, the fields named in ``positive`` are > 0 and those in
+    ``nonnegative`` are >= 0. Raises ``ValueError`` naming the first field that is not."""
+    d = tuple(config.durations)
+    if len(d) != len(phases) - 1 or min(d, default=0) < 1:
+        raise ValueError(f"durations needs {len(phases) - 1} positive step counts (one per "
+                         f"phase {tuple(phases[:-1])}), got {config.durations}")
+    for f in positive:
+        if not getattr(config, f) > 0:
+            raise ValueError(f"{f} must be positive, got {getattr(config, f)}")
+    for f in nonnegative:
+        if not getattr(config, f) >= 0:
+            raise ValueError(f"{f} must be >= 0, got {getattr(config, f)}")
 
 
 def _smoothstep(u):

@@ -64,7 +64,7 @@ import math
 import jax
 import jax.numpy as jnp
 
-from equibim_jax.experts._waypoints import Expert, make_bimanual_waypoint_expert
+from equibim_jax.experts._waypoints import check_expert_config, Expert, make_bimanual_waypoint_expert
 from equibim_jax.sim.env import Env, State
 from equibim_jax.tasks.banana_handover import BananaHandover
 
@@ -118,16 +118,10 @@ class BananaExpertConfig:
     ik_iterations: int = 10
 
     def __post_init__(self):
-        if len(self.durations) != len(PHASES) - 1 or min(self.durations) < 1:
-            raise ValueError(f"durations needs {len(PHASES) - 1} positive step counts (one per "
-                             f"phase {PHASES[:-1]}), got {self.durations}")
-        for f in ("pregrasp_height", "receiver_reach", "handover_z", "standoff", "rise",
-                  "back_off", "withdraw_height"):
-            if not getattr(self, f) > 0:
-                raise ValueError(f"{f} must be positive, got {getattr(self, f)}")
-        for f in ("giver_clearance", "receiver_clearance"):
-            if getattr(self, f) < 0:
-                raise ValueError(f"{f} must be >= 0, got {getattr(self, f)}")
+        check_expert_config(self, PHASES,
+                            positive=("pregrasp_height", "receiver_reach", "handover_z", "standoff", "rise",
+                                      "back_off", "withdraw_height"),
+                            nonnegative=("giver_clearance", "receiver_clearance"))
 
     @property
     def horizon(self) -> int:

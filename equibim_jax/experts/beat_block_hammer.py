@@ -38,7 +38,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from equibim_jax.experts._waypoints import R_DOWN_6D, make_waypoint_expert
+from equibim_jax.experts._waypoints import check_expert_config, R_DOWN_6D, make_waypoint_expert
 from equibim_jax.experts.place_empty_cup import Expert
 from equibim_jax.sim.env import Env, State
 from equibim_jax.tasks.beat_block_hammer import BeatBlockHammer
@@ -79,14 +79,9 @@ class HammerExpertConfig:
     ik_iterations: int = 10
 
     def __post_init__(self):
-        if len(self.durations) != len(PHASES) - 1 or min(self.durations) < 1:
-            raise ValueError(f"durations needs {len(PHASES) - 1} positive step counts (one per "
-                             f"phase {PHASES[:-1]}), got {self.durations}")
-        for f in ("pregrasp_height", "carry_clearance", "aim_height", "raise_height"):
-            if not getattr(self, f) > 0:
-                raise ValueError(f"{f} must be positive, got {getattr(self, f)}")
-        if self.overstrike < 0 or self.grasp_above_axis < 0:
-            raise ValueError("overstrike and grasp_above_axis must be >= 0")
+        check_expert_config(self, PHASES,
+                            positive=("pregrasp_height", "carry_clearance", "aim_height", "raise_height"),
+                            nonnegative=("overstrike", "grasp_above_axis"))
 
     @property
     def horizon(self) -> int:

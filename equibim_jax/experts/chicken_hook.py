@@ -54,7 +54,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from equibim_jax.experts._waypoints import Expert, make_bimanual_waypoint_expert
+from equibim_jax.experts._waypoints import check_expert_config, Expert, make_bimanual_waypoint_expert
 from equibim_jax.sim.env import Env, State
 from equibim_jax.tasks.chicken_hook import ChickenHook
 
@@ -95,17 +95,11 @@ class ChickenHookExpertConfig:
     ik_iterations: int = 10
 
     def __post_init__(self):
-        if len(self.durations) != len(PHASES) - 1 or min(self.durations) < 1:
-            raise ValueError(f"durations needs {len(PHASES) - 1} positive step counts (one per "
-                             f"phase {PHASES[:-1]}), got {self.durations}")
+        check_expert_config(self, PHASES,
+                            positive=("pregrasp", "hang_back", "sidestep", "retreat", "short"),
+                            nonnegative=("clearance", "preload"))
         if not 0.0 < self.pitch_deg <= 90.0:
             raise ValueError(f"pitch_deg must be in (0, 90], got {self.pitch_deg}")
-        for f in ("pregrasp", "hang_back", "sidestep", "retreat", "short"):
-            if not getattr(self, f) > 0:
-                raise ValueError(f"{f} must be positive, got {getattr(self, f)}")
-        for f in ("clearance", "preload"):
-            if getattr(self, f) < 0:
-                raise ValueError(f"{f} must be >= 0, got {getattr(self, f)}")
 
     @property
     def horizon(self) -> int:

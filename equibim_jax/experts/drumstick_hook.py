@@ -47,7 +47,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from equibim_jax.experts._waypoints import Expert, make_waypoint_expert
+from equibim_jax.experts._waypoints import check_expert_config, Expert, make_waypoint_expert
 from equibim_jax.sim.env import Env, State
 from equibim_jax.tasks.drumstick_hook import DrumstickHook
 
@@ -96,16 +96,11 @@ class DrumstickExpertConfig:
     ik_iterations: int = 10
 
     def __post_init__(self):
-        if len(self.durations) != len(PHASES) - 1 or min(self.durations) < 1:
-            raise ValueError(f"durations needs {len(PHASES) - 1} positive step counts (one per "
-                             f"phase {PHASES[:-1]}), got {self.durations}")
-        for f in ("pregrasp_height", "lift_height", "hover", "retreat", "short"):
-            if not getattr(self, f) > 0:
-                raise ValueError(f"{f} must be positive, got {getattr(self, f)}")
+        check_expert_config(self, PHASES,
+                            positive=("pregrasp_height", "lift_height", "hover", "retreat", "short"),
+                            nonnegative=("release_clearance", "retreat_up", "grasp_depth"))
         if not 0.0 <= self.pitch < math.pi:
             raise ValueError(f"pitch must be in [0, pi) rad, got {self.pitch}")
-        if self.release_clearance < 0 or self.retreat_up < 0 or self.grasp_depth < 0:
-            raise ValueError("release_clearance, retreat_up and grasp_depth must be >= 0")
 
     @property
     def horizon(self) -> int:

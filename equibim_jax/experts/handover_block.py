@@ -51,7 +51,9 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from equibim_jax.experts._waypoints import R_DOWN_6D, Expert, make_bimanual_waypoint_expert
+from equibim_jax.experts._waypoints import (
+    check_expert_config, R_DOWN_6D, Expert, make_bimanual_waypoint_expert,
+)
 from equibim_jax.sim.env import Env, State
 from equibim_jax.tasks.handover_block import HandoverBlock
 
@@ -96,16 +98,10 @@ class HandoverExpertConfig:
     ik_iterations: int = 10
 
     def __post_init__(self):
-        if len(self.durations) != len(PHASES) - 1 or min(self.durations) < 1:
-            raise ValueError(f"durations needs {len(PHASES) - 1} positive step counts (one per "
-                             f"phase {PHASES[:-1]}), got {self.durations}")
-        for f in ("pregrasp_height", "handover_bottom", "receiver_grip_height", "standoff",
-                  "withdraw_height", "carry_lift", "retreat_back"):
-            if not getattr(self, f) > 0:
-                raise ValueError(f"{f} must be positive, got {getattr(self, f)}")
-        for f in ("place_clearance", "retreat_up"):
-            if getattr(self, f) < 0:
-                raise ValueError(f"{f} must be >= 0, got {getattr(self, f)}")
+        check_expert_config(self, PHASES,
+                            positive=("pregrasp_height", "handover_bottom", "receiver_grip_height",
+                                      "standoff", "withdraw_height", "carry_lift", "retreat_back"),
+                            nonnegative=("place_clearance", "retreat_up"))
 
     @property
     def horizon(self) -> int:

@@ -40,7 +40,9 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from equibim_jax.experts._waypoints import R_DOWN_6D, Expert, make_bimanual_waypoint_expert
+from equibim_jax.experts._waypoints import (
+    check_expert_config, R_DOWN_6D, Expert, make_bimanual_waypoint_expert,
+)
 from equibim_jax.sim.env import Env, State
 from equibim_jax.tasks.pick_dual_bottles import PickDualBottles
 
@@ -69,12 +71,7 @@ class DualBottlesExpertConfig:
     ik_iterations: int = 10
 
     def __post_init__(self):
-        if len(self.durations) != len(PHASES) - 1 or min(self.durations) < 1:
-            raise ValueError(
-                f"durations needs {len(PHASES) - 1} positive step counts (one per phase "
-                f"{PHASES[:-1]}), got {self.durations}")
-        if not self.pregrasp_height > 0:
-            raise ValueError(f"pregrasp_height must be positive, got {self.pregrasp_height}")
+        check_expert_config(self, PHASES, positive=("pregrasp_height",))
 
     @property
     def horizon(self) -> int:

@@ -42,7 +42,7 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from equibim_jax.experts._waypoints import R_DOWN_6D, Expert, make_waypoint_expert
+from equibim_jax.experts._waypoints import check_expert_config, R_DOWN_6D, Expert, make_waypoint_expert
 from equibim_jax.sim.env import Env, State
 
 __all__ = ["PHASES", "PickPlaceConfig", "PickPlacePlan", "make_pick_place_expert"]
@@ -90,16 +90,9 @@ class PickPlaceConfig:
     ik_iterations: int = 10
 
     def __post_init__(self):
-        if len(self.durations) != len(PHASES) - 1 or min(self.durations) < 1:
-            raise ValueError(
-                f"durations needs {len(PHASES) - 1} positive step counts (one per phase "
-                f"{PHASES[:-1]}), got {self.durations}"
-            )
-        for f in ("pregrasp_height", "carry_lift", "retreat_height"):
-            if not getattr(self, f) > 0:
-                raise ValueError(f"{f} must be positive, got {getattr(self, f)}")
-        if self.place_clearance < 0:
-            raise ValueError(f"place_clearance must be >= 0, got {self.place_clearance}")
+        check_expert_config(self, PHASES,
+                            positive=("pregrasp_height", "carry_lift", "retreat_height"),
+                            nonnegative=("place_clearance",))
 
     @property
     def horizon(self) -> int:

@@ -29,7 +29,9 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from equibim_jax.experts._waypoints import R_DOWN_6D, make_waypoint_expert, pad_tip_below_ee
+from equibim_jax.experts._waypoints import (
+    check_expert_config, R_DOWN_6D, make_waypoint_expert, pad_tip_below_ee,
+)
 from equibim_jax.experts._waypoints import Expert
 from equibim_jax.sim.env import Env, State
 from equibim_jax.tasks.press_stapler import PressStapler
@@ -60,9 +62,7 @@ class StaplerExpertConfig:
     ik_iterations: int = 10
 
     def __post_init__(self):
-        if len(self.durations) != len(PHASES) - 1 or min(self.durations) < 1:
-            raise ValueError(f"durations needs {len(PHASES) - 1} positive step counts (one per "
-                             f"phase {PHASES[:-1]}), got {self.durations}")
+        check_expert_config(self, PHASES)
 
     @property
     def horizon(self) -> int:
