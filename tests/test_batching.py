@@ -33,3 +33,33 @@ def test_vmapenv_resets_64_envs():
     venv = VmapEnv(Env(EnvConfig(obs=("qpos",)), BoxScene()))
     s = jax.jit(venv.reset)(jax.random.split(jax.random.key(0), 64))
     assert s.data.qpos.shape[0] == 64 and np.all(np.isfinite(np.asarray(s.data.qpos)))
+
+
+_BATCH_256 = """
+import jax, numpy as np
+from equibim_jax.sim.env import Env, EnvConfig, VmapEnv
+from equibim_jax.sim.scenes import BoxScene
+venv = VmapEnv(Env(EnvConfig(obs=("qpos",)), BoxScene()))
+s = jax.jit(venv.reset)(jax.random.split(jax.random.key(0), 256))
+step = jax.jit(venv.step)
+for _ in range(3):
+    s = step(s, s.obs["qpos"])
+q = np.asarray(s.data.qpos)
+assert q.shape[0] == 256 and np.all(np.isfinite(q))
+print("ok", q.shape)
+"""
+
+
+@pytest.mark.slow
+def test_vmapenv_steps_256_envs_without_deadlock():
+    """Reset and three steps of 256 robot-A envs with contacts, in a subprocess under a
+    timeout: a deadlock fails the test instead of hanging the suite."""
+    import subprocess
+    import sys
+
+    try:
+        r = subprocess.run([sys.executable, "-c", _BATCH_256], capture_output=True, text=True, timeout=900)
+    except subprocess.TimeoutExpired:
+        pytest.fail("256 envs did not finish reset + 3 steps in 900 s (deadlock?)")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "ok (256," in r.stdout

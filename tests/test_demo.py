@@ -18,7 +18,8 @@ from equibim_jax.cli import main
 from equibim_jax.config import ConfigError, EvalConfig, TaskConfig, config_from_dict, load_config
 from equibim_jax.data.dataset import DatasetError, load
 from equibim_jax.data.generate import env_from_meta
-from equibim_jax.experiments.demo import DemoConfig, format_table, load_demo_config, run_demo
+from equibim_jax.experiments.demo import (DemoConfig, _first_call_split, format_table, load_demo_config,
+                                         run_demo)
 from equibim_jax.policies import DP3Config, EncoderConfig, UNetConfig
 from equibim_jax.training import TrainConfig, load_run
 
@@ -70,6 +71,16 @@ def test_demo_outputs(tiny_demo):
         for which in ("demos", "mirrored_demos", "equivariance"):
             assert np.isfinite(ol[which]["arm_rad"]) and ol[which]["arm_rad"] > 0
             assert 0 <= ol[which]["gripper"] <= 1
+    # where the time went: every stage, compile told apart where a stage made several calls
+    br = saved["timings"]["breakdown"]
+    assert set(br) == {"generate", "train_baseline", "train_equibim", "open_loop", "eval_baseline",
+                       "eval_equibim"}
+    assert all(v["wall_s"] > 0 for v in br.values())
+    for name in ("baseline", "equibim"):  # 2 dispatches of 2 steps
+        t = br[f"train_{name}"]
+        assert t["compile_s"] >= 0 and t["run_s"] > 0
+        assert t["compile_s"] + t["run_s"] == pytest.approx(saved[name]["train"]["train_s"])
+    assert br["generate"]["compile_s"] is None  # one chunk: nothing to compare it with
     png = (out / "demo.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
     table = format_table(res)
@@ -243,3 +254,10 @@ def test_mirrored_demo_replays_as_a_right_side_success(tiny_demo):
     expected = jax.vmap(env.obs_symmetry.ops["qpos"])(jnp.asarray(demos.obs["qpos"][0, 1:n]))
     assert bool(success[-1])
     assert float(jnp.abs(qpos[:-1] - expected).max()) < 1e-3  # rad; measured 1e-4
+
+
+def test_first_call_split():
+    assert _first_call_split(10.0, 16.0, 4) == {"compile_s": 8.0, "run_s": 8.0}  # later calls 2 s each
+    assert _first_call_split(1.0, 4.0, 2) == {"compile_s": 0.0, "run_s": 4.0}  # no excess: no compile
+    assert _first_call_split(5.0, 5.0, 1) == {"compile_s": None, "run_s": None}
+    assert _first_call_split(None, 5.0, 3) == {"compile_s": None, "run_s": None}

@@ -154,8 +154,8 @@ def _eval_check() -> dict:
     roll = make_policy_rollout(env, policy, norm, record_qpos=False)
     res = evaluate_sides(roll, params, jax.random.key(7), 4, chunk=8)
     # The same compiled runner again, for the final joint positions of every episode.
-    qpos, _ = _run_paired(_runner(roll), params, jax.random.key(7), 4, 8, ("trained", "mirrored"),
-                          ("final_qpos",), False, "")
+    qpos, _, _ = _run_paired(_runner(roll), params, jax.random.key(7), 4, 8, ("trained", "mirrored"),
+                             ("final_qpos",), False, "")
     return {"devices": jax.device_count(),
             **{side: {**{k: r[k] for k in ("per_episode", "first_success_step", "nan_actions")},
                       "final_qpos": qpos[side]["final_qpos"].tolist()}

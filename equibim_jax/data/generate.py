@@ -174,7 +174,8 @@ def generate_demos(
     )
     wall = time.perf_counter() - t0
     stats = {"attempts": attempts, "successes": successes, "success_rate": successes / attempts,
-             "wall_s": wall, "first_chunk_s_incl_compile": compile_s, "kept": len(kept),
+             "wall_s": wall, "first_chunk_s_incl_compile": compile_s, "chunks": attempts // chunk,
+             "kept": len(kept),
              "skipped": len(skipped), "perturbed": sum(k["perturbed"] for k in kept)}
     return demos, stats
 

@@ -251,18 +251,22 @@ def evaluate_sides(rollout: Callable, params: Any, key: jax.Array, n_episodes: i
     Batches of at most ``chunk`` episodes (<= 32 on the CPU: see ``equibim_jax._batching``).
 
     Returns:
-      ``{side: {"success", "ci95", "episodes", "successes", "wall_s", "per_episode",
-      "first_success_step", "nan_actions", "episodes_with_nan"}}``; ``first_success_step`` is
+      ``{side: {"success", "ci95", "episodes", "successes", "wall_s", "batch_s",
+      "per_episode", "first_success_step", "nan_actions", "episodes_with_nan"}}``;
+      ``wall_s`` is the call's wall time split evenly over the sides, ``batch_s`` the wall
+      time of each batch of the call (the first includes tracing and compiling);
+      ``first_success_step`` is
       -1 for failures; ``nan_actions`` counts the steps whose action was not finite (the env
       refuses them), summed over episodes.
     """
-    outs, wall = _run_paired(_runner(rollout), params, key, n_episodes, chunk, sides,
-                             ("success", "success_t", "nan_actions"), progress, desc)
+    outs, wall, batch_s = _run_paired(_runner(rollout), params, key, n_episodes, chunk, sides,
+                                      ("success", "success_t", "nan_actions"), progress, desc)
     res = {}
     for side in sides:
         succ, st = outs[side]["success"].astype(bool), outs[side]["success_t"]
         nan = outs[side]["nan_actions"]
-        res[side] = {**summarize(succ), "wall_s": wall / len(sides), "per_episode": succ.tolist(),
+        res[side] = {**summarize(succ), "wall_s": wall / len(sides), "batch_s": batch_s,
+                     "per_episode": succ.tolist(),
                      "first_success_step": np.where(st.any(-1), st.argmax(-1), -1).astype(int).tolist(),
                      "nan_actions": int(nan.sum()), "episodes_with_nan": int((nan > 0).sum())}
     return res
@@ -270,11 +274,12 @@ def evaluate_sides(rollout: Callable, params: Any, key: jax.Array, n_episodes: i
 
 def _run_paired(run: Callable, params: Any, key: jax.Array, n_episodes: int, chunk: int,
                 sides: tuple[str, ...], fields: tuple[str, ...], progress: bool,
-                desc: str) -> tuple[dict, float]:
+                desc: str) -> tuple[dict, float, list[float]]:
     """Run ``run(params, keys [c], mirrored [c])`` (a ``jit(vmap(rollout))``) over
     ``n_episodes`` keys for each side, in padded batches of ``chunk`` (one shape, one
     compile), each split over the data mesh (``chunk`` rounded up to a multiple of the
-    device count). Returns ``({side: {field: np [n_episodes, ...]}}, wall seconds)``."""
+    device count). Returns ``({side: {field: np [n_episodes, ...]}}, wall seconds, [seconds
+    per batch])``."""
     bad = [s for s in sides if s not in ("trained", "mirrored")]
     if bad or not sides:
         raise ValueError(f"sides must be a non-empty subset of ('trained', 'mirrored'), got {sides}")
@@ -293,17 +298,20 @@ def _run_paired(run: Callable, params: Any, key: jax.Array, n_episodes: int, chu
     params = replicate(params, mesh)
     t0 = time.perf_counter()
     got = {f: [] for f in fields}
+    batch_s = []
     with tqdm(total=total, desc=desc, unit="ep", disable=not progress) as bar:
         for i in range(0, total + pad, chunk):
+            tb = time.perf_counter()
             batch = shard_batch((all_keys[i : i + chunk], flags[i : i + chunk]), mesh)
             out = to_host(run(params, *batch))
+            batch_s.append(time.perf_counter() - tb)
             for f in fields:
                 got[f].append(np.asarray(out[f]))
             bar.update(min(chunk, total - i))
     wall = time.perf_counter() - t0
     got = {f: np.concatenate(v)[:total] for f, v in got.items()}
     return {side: {f: v[j * n_episodes : (j + 1) * n_episodes] for f, v in got.items()}
-            for j, side in enumerate(sides)}, wall
+            for j, side in enumerate(sides)}, wall, batch_s
 
 
 def mirror_pair_gap(env: Env, policy: Policy, normalizer, params: Any, key: jax.Array, n_episodes: int,
@@ -325,7 +333,7 @@ def mirror_pair_gap(env: Env, policy: Policy, normalizer, params: Any, key: jax.
       "neither"`` pair counts.
     """
     roll = make_policy_rollout(env, policy, normalizer, mirror_noise=True, record_qpos=True)
-    outs, _ = _run_paired(jax.jit(jax.vmap(roll, in_axes=(None, 0, 0))), params, key, n_episodes,
+    outs, _, _ = _run_paired(jax.jit(jax.vmap(roll, in_axes=(None, 0, 0))), params, key, n_episodes,
                           chunk, ("trained", "mirrored"), ("success", "qpos_t"), progress, "mirror pairs")
     q_back = np.asarray(jax.jit(jax.vmap(jax.vmap(env.sym.qpos)))(outs["mirrored"]["qpos_t"]))
     gap = np.max(np.abs(q_back - outs["trained"]["qpos_t"]), axis=-1)  # [n_episodes, T]

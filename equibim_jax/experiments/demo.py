@@ -143,6 +143,7 @@ def run_demo(cfg: DemoConfig = DemoConfig(), command: str = "", progress: bool =
     results["paired_sign_test"] = {
         label: paired_sign_test(ev["baseline"][side]["per_episode"], ev["equibim"][side]["per_episode"])
         for label, side in SIDES}
+    timings["breakdown"] = time_breakdown(cfg, timings, gen_stats, results, ev)
     results.update({
         "task": cfg.task.name,
         "task_options": config_to_dict(cfg.task.options),
@@ -155,6 +156,44 @@ def run_demo(cfg: DemoConfig = DemoConfig(), command: str = "", progress: bool =
     atomic_write_json(out / "demo.json", results)
     plot_demo(results, out / "demo.png", work)
     return results
+
+
+def _first_call_split(first_s: float | None, total_s: float, calls: int) -> dict:
+    """``{"compile_s", "run_s"}`` of a stage whose first of ``calls`` equal calls took
+    ``first_s`` of ``total_s``: compile is the first call's excess over the mean of the
+    others (tracing, lowering and compiling, or loading from the compile cache); with one
+    call it cannot be told apart (``None``)."""
+    if first_s is None or calls < 2:
+        return {"compile_s": None, "run_s": None}
+    steady = (total_s - first_s) / (calls - 1)
+    compile_s = max(first_s - steady, 0.0)
+    return {"compile_s": compile_s, "run_s": total_s - compile_s}
+
+
+def time_breakdown(cfg: "DemoConfig", timings: dict, gen_stats: dict, results: dict, ev: dict) -> dict:
+    """Where the demo's time went, per stage: ``{stage: {"wall_s", "compile_s", "run_s"}}``.
+
+    Stages: ``generate``, ``train_<run>``, ``open_loop``, ``eval_<run>``. Compile time is
+    estimated per stage from its first call against its later, equal-shaped calls
+    (:func:`_first_call_split`): generation chunks, training dispatches, evaluation
+    batches (both sides of a run share them). ``open_loop`` makes one call per run and is
+    reported as wall time only.
+    """
+    out = {"generate": {"wall_s": timings["generate_s"],
+                        **_first_call_split(gen_stats.get("first_chunk_s_incl_compile"),
+                                            gen_stats["wall_s"], int(gen_stats.get("chunks", 1)))}}
+    for name, tc in cfg.run_configs().items():
+        tr = results[name]["train"]
+        calls = -(-(int(tr["steps"]) - int(tr.get("resumed_from", 0))) // tc.steps_per_dispatch)
+        out[f"train_{name}"] = {"wall_s": timings[f"train_{name}_s"],
+                                **_first_call_split(tr.get("first_dispatch_s_incl_compile"), tr["train_s"], calls)}
+    out["open_loop"] = {"wall_s": timings["open_loop_s"], "compile_s": None, "run_s": None}
+    for name in RUNS:
+        batch_s = ev[name].get("trained", {}).get("batch_s", [])
+        wall = float(sum(batch_s))
+        out[f"eval_{name}"] = {"wall_s": wall, **_first_call_split(batch_s[0] if batch_s else None, wall,
+                                                                   len(batch_s))}
+    return out
 
 
 def format_table(results: dict) -> str:
