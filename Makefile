@@ -20,10 +20,10 @@ demo-long: $(STAMP)
 	$(VENV)/bin/equibim demo --train.batch-size 64 --train.total-steps 10000 --train.no-sym-stop-gradient --train.sym-batch-size None --out-dir results/demo10k
 
 test: $(STAMP)
-	$(VENV)/bin/python -m pytest -m "not slow" -q -n 2 --dist loadfile
+	$(VENV)/bin/python -m pytest -m "not slow" -q -n 2 --dist loadfile --durations=20
 
 test-slow: $(STAMP)
-	$(VENV)/bin/python -m pytest -m slow -q -n 2 --dist loadfile
+	$(VENV)/bin/python -m pytest -m slow -q -n 2 --dist loadfile --durations=30
 
 bench: $(STAMP)
 	mkdir -p results && $(VENV)/bin/python benchmarks/sim.py --out results/bench_sim.json

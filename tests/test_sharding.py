@@ -214,6 +214,7 @@ def _losses(rows: list[dict]) -> np.ndarray:
     return np.array([[r[m] for m in ("bc", "sym", "total", "grad_norm")] for r in rows])
 
 
+@pytest.mark.slow  # two cold subprocesses on both cores (the default suite keeps its budget)
 def test_training_on_two_devices_matches_one_and_resumes_across_device_counts(tmp_path):
     one, two = _run_both("train", tmp_path)
     assert (one["devices"], two["devices"]) == (1, 2)

@@ -86,8 +86,10 @@ def generate_demos(
         function of the key and the arguments.
       n_episodes: successful episodes to keep.
       length: control steps per rollout (default: :func:`default_length`).
-      chunk: episodes per compiled batch, split over the devices; rounded up to a multiple
-        of the device count (the extra rollouts are real attempts, recorded as such).
+      chunk: episodes per compiled batch (at most ``n_episodes``), split over the devices;
+        rounded up to a multiple of the device count (the extra rollouts are real attempts,
+        recorded as such). The kept episodes do not depend on it: rollout ``i`` always
+        starts from ``fold_in(key, i)`` and the first ``n_episodes`` successes are kept.
       keep_failures: keep failed episodes too (marked ``success=False``).
       max_attempts: stop after this many rollouts (default ``4 * n_episodes``).
       tail: steps kept after the first success (the expert's release and retreat).
@@ -116,7 +118,7 @@ def generate_demos(
     record_ee = env.config.action == "joint"
     max_attempts = max_attempts or 4 * n_episodes
     mesh = data_mesh()
-    chunk = round_up(chunk, mesh)
+    chunk = round_up(min(chunk, n_episodes), mesh)
     kept: list[dict] = []
     skipped: list[int] = []
     attempts = successes = 0
