@@ -18,7 +18,7 @@ from equibim_jax._sharding import maybe_initialize_distributed
 from equibim_jax.config import ConfigError, EvalConfig, TaskConfig, config_from_dict, find_config, load_config
 
 COMMANDS = ("demo", "generate", "experts", "pictures", "train", "eval", "equivariance", "symmetry", "robots", "tasks",
-            "policies")
+            "policies", "export", "import")
 
 
 def _command_line(argv: list[str]) -> str:
@@ -87,12 +87,21 @@ def _train_command(policy_default: Any, train_default: Any):
         """Shorthand for --train.total-steps."""
         checkpoint_every: int | None = None
         """Steps between checkpoints (default: at the end only)."""
+        symmetry: str | None = None
+        """Mirror map JSON (`equibim symmetry --out`) giving S for a dataset without a simulated env
+        (`equibim import`); checked against the dataset's names, sizes and cameras."""
 
         def run(self) -> None:
+            from equibim_jax.interop.mapping import InteropError
+            from equibim_jax.interop.symmetry import training_env
             from equibim_jax.training.run import train
 
             tc = self.train if self.steps is None else dataclasses.replace(self.train, total_steps=self.steps)
-            s = train(self.data, self.out, self.policy, tc, checkpoint_every=self.checkpoint_every)
+            try:  # S from a mirror map for data without a simulated env (docs/data.md)
+                env = training_env(self.data, self.symmetry)
+            except InteropError as e:
+                raise ConfigError(str(e)) from None
+            s = train(self.data, self.out, self.policy, tc, env=env, checkpoint_every=self.checkpoint_every)
             f = s["final"]
             print(f"trained to step {s['steps']} in {s['train_s']:.1f} s: bc {f.get('bc', float('nan')):.4f}, "
                   f"sym {f.get('sym', float('nan')):.4f}, equivariance error {f.get('equiv_err', float('nan')):.4f}; "
@@ -448,6 +457,8 @@ def _usage() -> str:
             "  eval          closed-loop success on both sides of a trained run\n"
             "  equivariance  open-loop equivariance and action errors of trained runs\n"
             "  symmetry      derive and verify the mirror S of a robot\n"
+            "  export        write a dataset as DP3 zarr or LeRobot v3 (docs/data.md)\n"
+            "  import        read a DP3 zarr or LeRobot v3 dataset into ours (docs/data.md)\n"
             "  robots        list the shipped robots\n"
             "  tasks         list the registered tasks and their options\n"
             "  policies      list the registered policies\n")
@@ -478,6 +489,10 @@ def main(argv: list[str] | None = None) -> None:
             tyro.cli(Eval, args=args, prog="equibim eval").run(command)
         elif cmd == "equivariance":
             tyro.cli(Equivariance, args=args, prog="equibim equivariance").run(command)
+        elif cmd in ("export", "import"):
+            from equibim_jax.interop.cli import Export, Import
+
+            tyro.cli(Export if cmd == "export" else Import, args=args, prog=f"equibim {cmd}").run()
         elif cmd == "symmetry":
             tyro.cli(SymmetryDemo, args=args, prog="equibim symmetry").run()
         elif cmd == "robots":
