@@ -1,11 +1,14 @@
 """Chunked vmap: ``vmap`` over sub-batches inside a ``lax.scan``.
 
-Why: on a 2-core CPU, jaxlib 0.10.2's batched LAPACK Cholesky (``lapack_spotrf_ffi``, used by
-every ``mjx.step`` to factor the mass matrix) splits large batches across the intra-op
-thread pool with ``ParallelBatchMap`` and deadlocks there (0 % CPU, forever) once the
-batch reaches 64 envs; at 32 it runs. Mapping chunks of at most ``MAX_CPU_CHUNK`` envs
-sidesteps that, costs nothing measurable on CPU (throughput is flat in batch size there),
-and on a GPU the chunk can be the whole batch.
+A plain ``vmap`` of the whole batch is the default everywhere (``chunk="auto"`` maps to
+``None``). Chunking bounds the memory of very large batches (each chunk's intermediates are
+live at once, not the whole batch's) at no cost in throughput on the CPU.
+
+History: jaxlib 0.10.2's *batched* LAPACK Cholesky (``lapack_spotrf_ffi``) deadlocks on a
+2-core CPU once a vmapped ``mjx.step`` reaches 64 envs, and chunks of 32 used to be the
+CPU default for that reason. :class:`~equibim_jax.sim.env.Env` now traces MJX with a
+Cholesky written in JAX (``equibim_jax/sim/_linalg.py``), so no LAPACK call is left in a
+step and any batch runs as one ``vmap``.
 """
 
 from __future__ import annotations
@@ -14,12 +17,9 @@ from typing import Callable
 
 import jax
 
-MAX_CPU_CHUNK = 32
-
-
 def default_chunk() -> int | None:
-    """``MAX_CPU_CHUNK`` on the CPU backend, ``None`` (plain vmap) elsewhere."""
-    return MAX_CPU_CHUNK if jax.default_backend() == "cpu" else None
+    """The chunk ``chunk="auto"`` stands for: ``None``, a plain ``vmap`` of the batch."""
+    return None
 
 
 def chunked_vmap(f: Callable, chunk: int | None | str = "auto", in_axes=0) -> Callable:

@@ -81,7 +81,7 @@ class EvalConfig:
       episodes: episodes per side. Episode ``i`` of the mirrored side starts from the
         mirror image of episode ``i``'s initial state (paired).
       seed: seed of the episode keys.
-      batch: episodes per compiled batch (at most 32 run at once on the CPU).
+      batch: episodes per compiled batch.
       mirror_noise: the mirrored episode also samples with the mirrored policy noise, so
         the pair is mirrored in all its randomness.
       temporal_ensemble: ``None``: execute ``Ta`` actions of each predicted chunk. A float

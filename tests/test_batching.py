@@ -1,4 +1,5 @@
-"""chunked_vmap equals vmap; batches of 64 envs run (jaxlib's batched Cholesky deadlock)."""
+"""chunked_vmap equals vmap; batches of 64 and 256 envs run as one vmap (jaxlib 0.10.2's batched
+LAPACK Cholesky deadlocked there on 2 cores; Env now traces MJX with sim/_linalg.py)."""
 
 import jax
 import jax.numpy as jnp
@@ -26,7 +27,7 @@ def test_chunked_vmap_matches_vmap_with_broadcast_and_pytrees():
 
 @pytest.mark.slow  # compiles a 64-env reset (the default suite keeps its budget)
 def test_vmapenv_resets_64_envs():
-    """Plain vmap of mjx.forward over 64 envs hangs forever on 2 cores with jaxlib 0.10.2."""
+    """A plain vmap of mjx.forward over 64 envs hung forever on 2 cores with LAPACK's Cholesky."""
     from equibim_jax.sim.env import Env, EnvConfig, VmapEnv
     from equibim_jax.sim.scenes import BoxScene
 

@@ -186,8 +186,7 @@ def generate_dataset(env: Env, out: str | Path, n_episodes: int, seed: int = 0, 
                      overwrite: bool = False, progress: bool = True) -> tuple[Demos, dict]:
     """Generate ``n_episodes`` successful expert demos in ``env`` and save them (zarr).
 
-    Episodes run in equal batches of at most ``chunk`` (32 on the CPU: see
-    ``equibim_jax._batching``) that cover ``n_episodes`` (48 -> 2 x 24, not 2 x 32, since
+    Episodes run in equal batches of at most ``chunk`` that cover ``n_episodes`` (48 -> 2 x 24, not 2 x 32, since
     the expert rarely fails and a padded last batch would mostly simulate spares). The
     dataset at ``out`` is written atomically; an existing one is only replaced with
     ``overwrite=True``. The metadata records the task, its resolved options and ``seed``,
@@ -199,7 +198,7 @@ def generate_dataset(env: Env, out: str | Path, n_episodes: int, seed: int = 0, 
     out = Path(out)
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out} exists; pass overwrite=True (--overwrite) to replace it")
-    chunk = max(1, min(int(chunk), 32, int(n_episodes)))
+    chunk = max(1, min(int(chunk), int(n_episodes)))
     chunk = math.ceil(int(n_episodes) / math.ceil(int(n_episodes) / chunk))
     demos, stats = generate_demos(env, jax.random.key(seed), n_episodes, chunk=chunk,
                                   progress=progress, meta={"seed": int(seed)})

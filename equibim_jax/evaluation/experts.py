@@ -65,8 +65,7 @@ def expert_success(task: str, episodes: int = 200, seed: int = 2024, batch: int 
       task: a registered task with an expert.
       episodes: number of starts (>= 1).
       seed: PRNG seed of the starts.
-      batch: episodes per compiled call (at most 32 per vmap on the CPU; see
-        ``equibim_jax._batching``).
+      batch: episodes per compiled call.
       options: task options (``make_env``), e.g. ``{"side": "left"}``.
       progress: show a progress bar.
 
@@ -88,7 +87,7 @@ def expert_success(task: str, episodes: int = 200, seed: int = 2024, batch: int 
     expert = make_expert(env)
     length = int(env.config.episode_length)
     roll = make_rollout(env, expert, length=length, obs=False)
-    batch = min(batch, episodes, 32)
+    batch = min(batch, episodes)
 
     @jax.jit
     def run(keys):

@@ -46,6 +46,7 @@ from mujoco import mjx
 
 from equibim_jax._batching import chunked_vmap
 from equibim_jax.sim import robots
+from equibim_jax.sim._linalg import jax_cholesky
 from equibim_jax.sim.ik import make_ee_fk, make_ik, mat_to_quat
 from equibim_jax.sim.render import CameraConfig, PointCloudConfig, make_renderer
 from equibim_jax.symmetry import (
@@ -111,6 +112,11 @@ class EnvConfig:
       camera: camera for images; ``None`` takes the robot's camera on the mirror plane.
       solver_iterations, ls_iterations: MJX solver settings (``None`` keeps the model's).
       ik_iterations: DLS iterations per control step in ``ee`` mode.
+      max_contacts: keep at most this many contacts per step (per contact dimension), the
+        deepest ones (MJX's ``max_contact_points``); ``None`` keeps every candidate pair's
+        contacts. MJX computes constraint rows for every kept contact, touching or not, so
+        this sets the size of the constraint solve. Physics is unchanged while no more than
+        this many contacts touch at once; past that, the shallowest are dropped.
       cone: friction cone, ``"pyramidal"`` or ``"elliptic"`` (``None`` keeps the model's).
         Elliptic cones are invariant to rotations about the contact normal, so the
         dynamics are mirror-equivariant; pyramidal cones are not exactly (their edges
@@ -132,8 +138,11 @@ class EnvConfig:
     ls_iterations: int | None = None
     ik_iterations: int = 10
     cone: str | None = None
+    max_contacts: int | None = None
 
     def __post_init__(self):
+        if self.max_contacts is not None and (not isinstance(self.max_contacts, int) or self.max_contacts < 1):
+            raise ValueError(f"max_contacts must be a positive int or None, got {self.max_contacts!r}")
         if self.cone not in (None, "pyramidal", "elliptic"):
             raise ValueError(f"cone must be 'pyramidal' or 'elliptic', got {self.cone!r}")
         if self.robot not in robots.robot_names():
@@ -216,6 +225,12 @@ class Env:
         self.info = robots.robot_info(config.robot)
         spec = robots.robot_spec(config.robot)
         self.scene.build(spec, self.info)
+        if config.max_contacts is not None:
+            if any(n.name == "max_contact_points" for n in spec.numerics):
+                raise ValueError("EnvConfig.max_contacts is set, but the model already has a custom numeric "
+                                 "'max_contact_points'; set one of them")
+            numeric = spec.add_numeric()
+            numeric.name, numeric.data = "max_contact_points", [float(config.max_contacts)]
         model = spec.compile()
         if config.sim_dt is not None:
             model.opt.timestep = config.sim_dt
@@ -506,7 +521,8 @@ class Env:
         data = data.replace(ctrl=ctrl)
 
         def sub(d, _):
-            return mjx.step(self.mjx_model, d), None
+            with jax_cholesky():  # no LAPACK custom call in the step (sim/_linalg.py)
+                return mjx.step(self.mjx_model, d), None
 
         data, _ = jax.lax.scan(sub, data, None, length=self.n_substeps)
         return data
@@ -516,7 +532,8 @@ class Env:
         qpos, task_info = self.scene.init(key, self)
         data = mjx.make_data(self.mjx_model)
         data = data.replace(qpos=jnp.asarray(qpos, data.qpos.dtype), ctrl=jnp.asarray(self.home_ctrl, data.ctrl.dtype))
-        data = mjx.forward(self.mjx_model, data)
+        with jax_cholesky():
+            data = mjx.forward(self.mjx_model, data)
         return self._finish(data, {"step": jnp.zeros((), jnp.int32), "success": jnp.zeros((), bool), **task_info},
                             nan=jnp.zeros((), jnp.float32), clipped=jnp.zeros((), jnp.float32))
 
@@ -570,7 +587,8 @@ class Env:
             ctrl=self.sym.ctrl(data.ctrl).astype(data.ctrl.dtype),
             qacc_warmstart=self.sym.qvel(data.qacc_warmstart).astype(data.qvel.dtype),
         )
-        return mjx.forward(self.mjx_model, d)
+        with jax_cholesky():
+            return mjx.forward(self.mjx_model, d)
 
     def mirror_state(self, state: State) -> State:
         """The mirror image of a whole state; observations are recomputed from it."""
@@ -582,8 +600,8 @@ class Env:
 class VmapEnv:
     """Batches an :class:`Env`: ``reset(keys [B]) -> State [B]``, ``step(State [B], [B, A])``.
 
-    On the CPU, batches above 32 envs run as a ``lax.scan`` over vmapped chunks of 32
-    (see ``equibim_jax._batching``: jaxlib's batched Cholesky deadlocks on 2 cores at 64).
+    ``chunk``: envs per vmapped sub-batch (``equibim_jax._batching``); the default is one
+    ``vmap`` of the whole batch.
     """
 
     def __init__(self, env: Env, chunk: int | None | str = "auto"):

@@ -48,6 +48,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
+from equibim_jax.sim._linalg import cho_factor, cho_solve
 from equibim_jax.sim.robots import RobotInfo
 
 __all__ = [
@@ -493,8 +494,8 @@ def make_ik(
             jac, err = jac_and_err(q_full, tpos, tmat)  # [2, m, n], [2, m]
             m = jac.shape[-2]
             jjt = jac @ jnp.swapaxes(jac, -1, -2) + lam2 * jnp.eye(m, dtype=dtype)
-            chol = jnp.linalg.cholesky(jjt)
-            y = jax.scipy.linalg.cho_solve((chol, True), err[..., None])[..., 0]
+            # per arm, in plain JAX (no batched LAPACK call under vmap; sim/_linalg.py)
+            y = jax.vmap(lambda a, e: cho_solve(cho_factor(a, lower=True), e))(jjt, err)
             dq = jnp.einsum("smn,sm->sn", jac, y)
             norm = jnp.linalg.norm(dq, axis=-1, keepdims=True)
             dq = dq * jnp.minimum(1.0, max_step / jnp.maximum(norm, 1e-12))
