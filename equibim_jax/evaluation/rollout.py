@@ -252,12 +252,13 @@ def evaluate_sides(rollout: Callable, params: Any, key: jax.Array, n_episodes: i
 
     Returns:
       ``{side: {"success", "ci95", "episodes", "successes", "wall_s", "batch_s",
-      "per_episode", "first_success_step", "nan_actions", "episodes_with_nan"}}``;
+      "per_episode", "first_success_step", "nan_actions", "episodes_with_nan",
+      "nan_per_episode"}}``;
       ``wall_s`` is the call's wall time split evenly over the sides, ``batch_s`` the wall
       time of each batch of the call (the first includes tracing and compiling);
       ``first_success_step`` is
       -1 for failures; ``nan_actions`` counts the steps whose action was not finite (the env
-      refuses them), summed over episodes.
+      refuses them), summed over episodes, ``nan_per_episode`` the same count per episode.
     """
     outs, wall, batch_s = _run_paired(_runner(rollout), params, key, n_episodes, chunk, sides,
                                       ("success", "success_t", "nan_actions"), progress, desc)
@@ -268,7 +269,8 @@ def evaluate_sides(rollout: Callable, params: Any, key: jax.Array, n_episodes: i
         res[side] = {**summarize(succ), "wall_s": wall / len(sides), "batch_s": batch_s,
                      "per_episode": succ.tolist(),
                      "first_success_step": np.where(st.any(-1), st.argmax(-1), -1).astype(int).tolist(),
-                     "nan_actions": int(nan.sum()), "episodes_with_nan": int((nan > 0).sum())}
+                     "nan_actions": int(nan.sum()), "episodes_with_nan": int((nan > 0).sum()),
+                     "nan_per_episode": nan.astype(int).tolist()}
     return res
 
 
