@@ -14,11 +14,11 @@ from typing import Any, Literal
 
 import tyro
 
-from equibim_jax._sharding import maybe_initialize_distributed
+from equibim_jax._sharding import maybe_initialize_distributed, maybe_use_cpu_cores
 from equibim_jax.config import ConfigError, EvalConfig, TaskConfig, config_from_dict, find_config, load_config
 
 COMMANDS = ("demo", "generate", "experts", "pictures", "train", "eval", "equivariance", "symmetry", "robots", "tasks",
-            "policies", "export", "import")
+            "policies", "export", "import", "experiment")
 
 
 def _command_line(argv: list[str]) -> str:
@@ -170,13 +170,55 @@ class Eval:
     """Shorthand for --eval.episodes."""
     out: str | None = None
     """Also write the results as JSON here."""
+    out_dir: str | None = None
+    """Write eval.json, episodes.jsonl (one record per episode and side) and videos/ here."""
+    videos: int = 0
+    """Film the first N episodes, each beside its mirrored twin (default folder: RUN/eval/videos)."""
+    video_episodes: tuple[int, ...] = ()
+    """Film these episodes instead (indices below the episode count), e.g. `--video-episodes 0 3`."""
+    video_format: Literal["gif", "mp4"] = "gif"
+    """gif (Pillow) or mp4 (PyAV, `pip install av`)."""
+    video_size: int = 128
+    """Frame side of each half of a video, in pixels."""
+    video_fps: int = 20
+    video_every: int = 1
+    """Keep every N-th control step in the videos."""
+    equivariance_demos: int = 0
+    """If > 0, also measure the equivariance error on windows of this many fresh expert demos."""
 
     def run(self, command: str) -> None:
         from equibim_jax._io import atomic_write_json
         from equibim_jax.evaluation.evaluate import evaluate_run
 
         cfg = self.eval if self.episodes is None else dataclasses.replace(self.eval, episodes=self.episodes)
-        res = evaluate_run(self.run_dir, cfg)
+        if self.videos and self.video_episodes:
+            raise SystemExit("equibim eval: give --videos N or --video-episodes I J ..., not both")
+        if self.videos < 0:
+            raise SystemExit(f"equibim eval: --videos must be >= 0, got {self.videos}")
+        if self.videos > cfg.episodes:
+            raise SystemExit(f"equibim eval: --videos {self.videos} is more than the {cfg.episodes} episodes "
+                             f"evaluated")
+        chosen = tuple(range(self.videos)) or self.video_episodes
+        try:  # the checks evaluate_run makes, made here first to exit with a message
+            from equibim_jax.evaluation.videos import check_episodes
+
+            check_episodes(chosen, cfg.episodes)
+            if self.video_size < 8 or self.video_fps < 1 or self.video_every < 1 or self.equivariance_demos < 0:
+                raise ValueError("--video-size must be >= 8, --video-fps and --video-every >= 1, "
+                                 "--equivariance-demos >= 0")
+            if chosen and self.video_format == "mp4":
+                if self.video_size % 2:
+                    raise ValueError(f"mp4 needs an even --video-size, got {self.video_size}")
+                import av  # noqa: F401
+        except ValueError as e:
+            raise SystemExit(f"equibim eval: {e}") from None
+        except ImportError:
+            raise SystemExit("equibim eval: mp4 videos need PyAV (pip install av); "
+                             "or use --video-format gif") from None
+        res = evaluate_run(self.run_dir, cfg, out_dir=self.out_dir, video_episodes=chosen,
+                           video_size=self.video_size, video_format=self.video_format,
+                           video_fps=self.video_fps, video_every=self.video_every,
+                           equivariance_demos=self.equivariance_demos)
         for side in ("trained", "mirrored"):
             r = res[side]
             lo, hi = r["ci95"]
@@ -188,6 +230,16 @@ class Eval:
                   f"only, {res['mirrored_only']} on the mirrored side only, {res['neither']} on neither")
             print("median over pairs of max_j |S(q_mirrored(t)) - q_trained(t)|_j at step t: "
                   + ", ".join(f"t={t}: {g:.4f}" for t, g in res["gap_median_at"].items()))
+        if "equivariance" in res:
+            eq = res["equivariance"]
+            print(f"equivariance on {eq['windows']} windows of {eq['demos']} fresh expert demos: relative "
+                  f"{eq['relative']:.4f}; sampled actions |S pi(S O, S z) - pi(O, z)|: arm "
+                  f"{eq['equivariance']['arm_rad']:.4f} rad, gripper {eq['equivariance']['gripper']:.3f}")
+        for v in res.get("videos", []):
+            print(f"video of episode {v['episode']}: {v['path']} ({v['frames']} frames, "
+                  f"{v['width']}x{v['height']})")
+        if self.out_dir:
+            print(f"wrote {self.out_dir}/eval.json and {self.out_dir}/episodes.jsonl")
         if self.out:
             atomic_write_json(self.out, {**res, "command": command})
 
@@ -377,7 +429,7 @@ class Experts:
     with an expert, then the robotwin_faithful=True variants)."""
     seed: int = 2024
     batch: int = 25
-    """Episodes per compiled call (at most 32 on the CPU)."""
+    """Episodes per compiled call."""
 
     def run(self) -> None:
         from equibim_jax.evaluation.experts import default_specs, expert_table, markdown_table, parse_task_spec
@@ -450,6 +502,7 @@ class Pictures:
 def _usage() -> str:
     return ("usage: equibim COMMAND [--help] [flags]\n\ncommands:\n"
             "  demo          the main experiment (settings from tasks/place_empty_cup.json)\n"
+            "  experiment    run or resume a paper table (tasks/experiments/NAME.json)\n"
             "  generate      scripted-expert demos of a task into a dataset\n"
             "  experts       success rates of the tasks' scripted experts (JSON, resumable)\n"
             "  pictures      task pictures: a frame grid (tasks.png) and one GIF per task\n"
@@ -465,8 +518,15 @@ def _usage() -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    # First, before any JAX backend starts: join a multi-process run if the environment
-    # asks for one (EQUIBIM_JAX_DISTRIBUTED=1 or JAX_COORDINATOR_ADDRESS; docs/scaling.md).
+    # First, before any JAX backend starts: one CPU device per core, so that batches are
+    # split over the cores (EQUIBIM_JAX_CPU_DEVICES=off keeps one), and join a
+    # multi-process run if the environment asks for one (EQUIBIM_JAX_DISTRIBUTED=1 or
+    # JAX_COORDINATOR_ADDRESS); docs/scaling.md.
+    try:
+        maybe_use_cpu_cores()
+    except ValueError as e:
+        print(f"equibim: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
     maybe_initialize_distributed()
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help"):
@@ -477,6 +537,10 @@ def main(argv: list[str] | None = None) -> None:
     try:
         if cmd == "demo":
             _demo(args, command)
+        elif cmd == "experiment":
+            from equibim_jax.experiments.runner import cli_main
+
+            cli_main(args, command)
         elif cmd == "train":
             _train(args)
         elif cmd == "generate":
