@@ -45,6 +45,8 @@ __all__ = [
     "distributed_requested",
     "distributed_args",
     "maybe_initialize_distributed",
+    "cpu_devices_requested",
+    "maybe_use_cpu_cores",
     "is_main_process",
     "to_host",
 ]
@@ -217,6 +219,66 @@ def maybe_initialize_distributed() -> bool:
         return False
     jax.distributed.initialize(**distributed_args())
     return True
+
+
+CPU_DEVICES_FLAG = "--xla_force_host_platform_device_count"
+
+
+def _usable_cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def cpu_devices_requested(environ: Any = None) -> int:
+    """CPU devices asked for by ``EQUIBIM_JAX_CPU_DEVICES``: ``auto`` (the default) is the
+    largest power of two not above the usable cores, capped at 8 (so that the usual batch
+    sizes, 32 or 64, divide evenly); an integer N is N; ``0``, ``1`` or ``off`` is XLA's
+    default (one CPU device).
+
+    Raises:
+      ValueError: a value that is none of these.
+    """
+    env = os.environ if environ is None else environ
+    raw = env.get("EQUIBIM_JAX_CPU_DEVICES", "auto").strip().lower()
+    if raw in ("", "auto"):
+        n = min(_usable_cores(), 8)
+        return 1 << (n.bit_length() - 1)
+    if raw in ("off", "no", "false"):
+        return 1
+    try:
+        n = int(raw)
+    except ValueError:
+        raise ValueError(f"EQUIBIM_JAX_CPU_DEVICES must be 'auto', 'off' or an integer, got {raw!r}") from None
+    if n < 0:
+        raise ValueError(f"EQUIBIM_JAX_CPU_DEVICES must be >= 0, got {n}")
+    return max(n, 1)
+
+
+def maybe_use_cpu_cores(environ: Any = None) -> int:
+    """Ask XLA for :func:`cpu_devices_requested` CPU devices, before any backend starts.
+
+    XLA:CPU runs one device's program on one thread (matrix products aside), so batched
+    physics and rendering use one core however large the batch; with one CPU device per
+    core the data mesh (:func:`data_mesh`) splits each batch over the cores. It adds
+    ``--xla_force_host_platform_device_count=N`` to ``XLA_FLAGS`` and returns N, or leaves
+    everything as it is and returns 0 when: N is 1, ``XLA_FLAGS`` already sets the count,
+    a JAX backend has already started (the flag would be ignored), or a multi-process run
+    is requested (:func:`distributed_requested`). On a GPU host the flag only adds CPU
+    devices; the default backend, and so the mesh, stays the GPU.
+    """
+    env = os.environ if environ is None else environ
+    n = cpu_devices_requested(env)
+    flags = env.get("XLA_FLAGS", "")
+    if n <= 1 or CPU_DEVICES_FLAG in flags or distributed_requested(env):
+        return 0
+    from jax._src import xla_bridge
+
+    if xla_bridge.backends_are_initialized():
+        return 0
+    env["XLA_FLAGS"] = f"{flags} {CPU_DEVICES_FLAG}={n}".strip()
+    return n
 
 
 def is_main_process() -> bool:

@@ -14,11 +14,11 @@ A task is one module in this package that defines its :class:`~equibim_jax.sim.e
 ``make_env(task, **options)`` splits the options by name between
 :class:`~equibim_jax.sim.env.EnvConfig` fields (``obs``, ``action``, ``n_points``,
 ``episode_length``, ...) and the scene's fields (e.g. ``side``). Unset env fields take the
-task's defaults (``TaskEntry.env_defaults``, its robot, and ``episode_length`` = its step
-limit). Option values may be strings (from a command line); they are converted to the
-field's type. The env records the task's name and the full resolved options
-(``env.task``, ``env.task_options``), which datasets and runs store, so that generic code
-rebuilds the same env without knowing what the options mean.
+task's defaults (``TaskEntry.env_defaults``, its robot, ``episode_length`` = its step
+limit, and ``max_contacts`` = :data:`TASK_MAX_CONTACTS`). Option values may be strings (from
+a command line); they are converted to the field's type. The env records the task's name
+and the full resolved options (``env.task``, ``env.task_options``), which datasets and runs
+store, so that generic code rebuilds the same env without knowing what the options mean.
 """
 
 from __future__ import annotations
@@ -38,6 +38,13 @@ __all__ = ["TaskEntry", "register_task", "task_names", "task_entry", "task_optio
            "make_scene", "make_expert"]
 
 _ENV_FIELDS = tuple(f.name for f in dataclasses.fields(EnvConfig))
+
+# Contacts kept per physics step (EnvConfig.max_contacts, the deepest first). Every
+# candidate geom pair of a task yields contacts whether or not they touch, and the
+# constraint solve is sized by them. The scripted experts' episodes measured so far never
+# have more than 16 touching at once (docs/tasks.md, "Contacts"), so their physics is that
+# of keeping every contact, up to float rounding. ``max_contacts=None`` keeps all.
+TASK_MAX_CONTACTS = 24
 
 
 @dataclasses.dataclass(frozen=True)
@@ -195,7 +202,8 @@ def make_env(task: str, **options) -> Env:
     if bad:
         raise ValueError(f"unknown option(s) {bad} for task {task!r}; valid options: {list(valid)}")
     env_hints = _hints(EnvConfig)
-    env_kw = {"robot": entry.robot, "episode_length": int(entry.step_limit), **entry.env_defaults}
+    env_kw = {"robot": entry.robot, "episode_length": int(entry.step_limit), "max_contacts": TASK_MAX_CONTACTS,
+              **entry.env_defaults}
     env_kw.update({k: _coerce(k, env_hints.get(k, Any), v) for k, v in options.items() if k in _ENV_FIELDS})
     if env_kw["robot"] != entry.robot:
         raise ValueError(f"task {task!r} is built for robot {entry.robot!r}, not {env_kw['robot']!r}")
