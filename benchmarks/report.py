@@ -59,6 +59,7 @@ rebuilt from the arguments the JSON records where it records them.
 """
 
 WHAT = {
+    "contacts": "what keeping the deepest contacts (`max_contacts`) changes: success, trajectories, mirror error",
     "demos": "demo generation per task: 50 scripted-expert demos with a rendered 64x64 head-camera "
              "image every step; compile time, demos/s, env-steps/s, and physics steps/s against "
              "MuJoCo C on the same model in the same run",
@@ -89,19 +90,32 @@ NOTES_SIM = """\
 
 The benchmark scene is robot A plus one free box, with 4 solver iterations and pyramidal
 friction cones. Physics throughput counts physics steps (`mjx.step` calls, one per env)
-per second.
+per second. Three things set it:
 
-MJX reaches about 0.06 of MuJoCo C here, and misses the target of 10,000 physics steps/s
-at batch 256. The reason is a deadlock: with jaxlib 0.10.2 on 2 cores, a plain `vmap` of
-`mjx.step` over 64 or more envs never returns (the batched LAPACK Cholesky that factors
-the mass matrix waits forever on the intra-op thread pool). `VmapEnv` and the benchmark
-therefore scan over vmapped chunks of 32 envs (`equibim_jax/_batching.py`), and
-throughput stays at the batch-32 level. Not yet tried: a hand-written Cholesky for the
-small (22x22) mass matrix, fewer solver iterations, and `<pair>`-only contacts.
+- **No LAPACK call in the step.** MJX factors its small dense systems (the 22x22 mass
+  matrix, the Newton solver's Hessian) with `jax.scipy.linalg.cho_factor`, which jaxlib
+  0.10.2 runs as a batched LAPACK call that deadlocks on 2 cores from 64 envs on. `Env`
+  traces MJX with a Cholesky written in JAX (`equibim_jax/sim/_linalg.py`), so any batch is
+  one `vmap`. On its own this changes little: throughput per core was already flat in the
+  batch size.
+- **One CPU device per core** (`DEVICES` = 2). XLA:CPU runs a device's program on one
+  thread, so one device leaves the second core idle; with two, the batch is split over
+  both (`equibim_jax._sharding`).
+- **Fewer contact slots** (`CONTACTS` = 24). MJX computes constraint rows for every
+  contact slot of every candidate geom pair, touching or not (44 slots, 280 rows here), and
+  the solver's cost follows the rows. Keeping the 24 deepest leaves the physics unchanged
+  while at most 24 touch (the table below it: the experts' episodes stay within 16).
 
-The MJX compile times in `sim_2core_cpu.json` (3.1 / 5.1 / 9.2 s at batch 1 / 64 / 256)
-are loads from the persistent compilation cache. Cold, the same compiles took 15.7 / 26.8
-/ 32.5 s. The renderer meets its target of 300 frames/s at 64x64 with room to spare.
+The tasks use both by default (the `equibim` command asks XLA for one CPU device per core;
+`make_env` keeps 24 contacts). Compile times are real (the persistent cache is off).
+
+In `sim_2core_cpu.json`, at batch 256: 4,072 steps/s for one device and every slot (0.054
+of MuJoCo C), 5,597 with two devices (0.074), 4,419 with 24 slots on one device (0.058),
+and 7,692 with both (0.101). Both targets are still missed: 10,000 steps/s and 0.15 of
+MuJoCo C. The gains do not simply multiply: keeping 24 slots gains 8 % on one device and
+37 % on two. The earlier figure (4,815 steps/s, 0.059, chunks of 32 on one device) matches
+the one-device rows. Not measured here: fewer line-search or Newton iterations (each
+changes the physics), and the CG solver (slower per step in a first probe).
 """
 
 NOTES_DEMOS = """\
@@ -111,8 +125,8 @@ the rollout took 32 to 45 s per task. Each control step here does more than phys
 the expert's IK (10 damped-least-squares iterations for both arms), 5 physics substeps,
 and a 64x64 ray-cast image, so the physics rate is 0.024 to 0.029 of one MuJoCo C core
 stepping the same model without rendering, against about 0.06 for physics alone in
-`sim_2core_cpu.json`. MJX runs at most 32 envs per vmap on this CPU (the batched
-Cholesky deadlock described under the simulator table), which also caps this rate.
+`sim_2core_cpu.json` (measured before the tasks kept 24 contacts and before one CPU device
+per core; both raise this rate, not yet remeasured here).
 """
 
 NOTES_OBS = """\
@@ -235,6 +249,8 @@ def kind_of(d: dict) -> str | None:
         return "sim"
     if "tasks" in d and str(d.get("meta", {}).get("command", "")).startswith("python benchmarks/demos.py"):
         return "demos"
+    if "tasks" in d and str(d.get("command", "")).startswith("python benchmarks/contacts.py"):
+        return "contacts"
     if "xla_tuning_on" in d and "xla_tuning_off" in d:
         return "train_compare"
     if "variants" in d and "matmul_2048_fp32" in d:
@@ -255,8 +271,8 @@ def kind_of(d: dict) -> str | None:
 
 SCRIPT = {"demos": "demos.py", "sim": "sim.py", "obs_cost": "obs_cost.py", "rollout": "rollout.py",
           "train": "train.py", "train_compare": "train.py", "layers": "layers.py",
-          "train_policies": "train.py", "online_vs_offline": "online_vs_offline.py"}
-ORDER = ["sim", "demos", "obs_cost", "rollout", "train_policies", "online_vs_offline", "train_compare",
+          "train_policies": "train.py", "online_vs_offline": "online_vs_offline.py", "contacts": "contacts.py"}
+ORDER = ["sim", "contacts", "demos", "obs_cost", "rollout", "train_policies", "online_vs_offline", "train_compare",
          "train", "layers"]
 
 
@@ -298,6 +314,8 @@ def section_sim(name: str, d: dict) -> str:
         v = d["mjx_steps_per_s"]["256"]
         targets.append(f"MJX at batch 256, at least 10,000 physics steps/s: "
                        f"{'met' if v >= 10_000 else '**not met**'} ({_int(v)})")
+        r = v / c
+        targets.append(f"at least 0.15 of MuJoCo C: {'met' if r >= 0.15 else '**not met**'} ({r:.3f})")
     if "64" in d.get("render_fps", {}):
         v = d["render_fps"]["64"]
         targets.append(f"renderer at 64x64, at least 300 frames/s: "
@@ -311,11 +329,51 @@ def section_sim(name: str, d: dict) -> str:
     model = _kv([("nq", m.get("nq")), ("nv", m.get("nv")), ("ngeom", m.get("ngeom")),
                  ("timestep", m.get("timestep")), ("solver iterations", m.get("iterations")),
                  ("line-search iterations", m.get("ls_iterations")),
-                 ("MJX vmap chunk", d.get("vmap_chunk"))])
+                 ("MJX vmap chunk", d.get("vmap_chunk") if "variants" not in d else None)])
     parts = [f"## Simulator: `{name}`", _cmd_block(cmd, note), table, how]
+    if d.get("variants"):
+        vrows = []
+        for spec, v in d["variants"].items():
+            for b in sorted(v["mjx"], key=int):
+                r = v["mjx"][b]
+                vrows.append([_code(spec), _int(v["devices"]),
+                              "all" if v["max_contacts"] is None else _int(v["max_contacts"]),
+                              f"{v['contacts']} / {v['constraint_rows']}", _int(int(b)), _f(r["compile_s"], 1),
+                              _f(r["run_s"], 3), _int(r["steps_per_s"]), _ratio(r["steps_per_s"] / c)])
+        parts.append("Every variant (`DEVICES:CONTACTS`), each in its own process"
+                     + (", compile cache off" if d.get("compile_cache") == "off" else "")
+                     + f"; the table above shows `{d.get('headline_variant')}`:")
+        parts.append(_table(["variant", "CPU devices", "max contacts", "contacts / constraint rows", "batch",
+                             "compile (s)", "run (s)", "physics steps/s", "ratio to MuJoCo C"], vrows))
     if targets:
         parts.append("Targets: " + "; ".join(targets) + ".")
     parts.append(f"Recorded: {env}. Model: {model}.")
+    return "\n\n".join(parts)
+
+
+def section_contacts(name: str, d: dict) -> str:
+    rows, touching = [], False
+    for task, r in sorted(d["tasks"].items()):
+        if "most_touching" in r:
+            touching = True
+            rows.append([_code(task), _int(r["episodes"]), _int(r["slots"]), _int(r["most_touching"])])
+        else:
+            n = r["episodes"]
+            rows.append([_code(task), f"{r['success_all']}/{n}", f"{r['success_keep']}/{n}",
+                         "yes" if r["same_per_episode"] else "no",
+                         f"{r['qpos_diff_median']:.2g} / {r['qpos_diff_max']:.2g}",
+                         f"{r['mirror_err_all_median']:.2g} / {r['mirror_err_all_max']:.2g}",
+                         f"{r['mirror_err_keep_median']:.2g} / {r['mirror_err_keep_max']:.2g}"])
+    if touching:
+        head = ["task", "episodes", "contact slots", "most touching at once"]
+        title = f"## Contacts touching at once: `{name}`"
+    else:
+        keep = next(iter(d["tasks"].values()))["keep"]
+        head = ["task", "success, all slots", f"success, {keep} kept", "same episodes succeed",
+                "qpos difference: median / largest", "mirror error, all: median / largest",
+                f"mirror error, {keep} kept: median / largest"]
+        title = f"## Keeping the deepest contacts: `{name}`"
+    parts = [title, _cmd_block(d["command"], d.get("note", "")), _table(head, rows)]
     return "\n\n".join(parts)
 
 
@@ -715,7 +773,7 @@ large enough to absorb the physics. Neither holds here, and neither was measured
 """
 
 
-SECTIONS = {"demos": section_demos, "sim": section_sim, "obs_cost": section_obs_cost, "rollout": section_rollout,
+SECTIONS = {"demos": section_demos, "sim": section_sim, "contacts": section_contacts, "obs_cost": section_obs_cost, "rollout": section_rollout,
             "train": section_train, "train_compare": section_train_compare, "layers": section_layers,
             "train_policies": section_train_policies, "online_vs_offline": section_online_vs_offline}
 NOTES_AFTER = {"sim": NOTES_SIM, "demos": NOTES_DEMOS, "rollout": NOTES_OBS, "layers": NOTES_TRAIN,
@@ -738,7 +796,7 @@ def render(results: pathlib.Path = RESULTS) -> str:
     parts = [INTRO.format(index=index).rstrip("\n")]
 
     # Each kind's notes come after the last section they explain ("why" prose groups).
-    groups = {"sim": "sim", "demos": "demos", "obs_cost": "rollout", "rollout": "rollout", "train_compare": "layers",
+    groups = {"sim": "sim", "contacts": "contacts", "demos": "demos", "obs_cost": "rollout", "rollout": "rollout", "train_compare": "layers",
               "train": "layers", "layers": "layers", "train_policies": "train_policies",
               "online_vs_offline": "train_policies"}
     present = {k for _, k, _ in known}

@@ -1,12 +1,23 @@
 """Simulator benchmark: MJX physics, MuJoCo C, mujoco.rollout, and the ray-cast renderer.
 
-    python benchmarks/sim.py --out results/bench_sim.json [--quick]
+    python benchmarks/sim.py --out benchmarks/results/sim_2core_cpu.json [--quick]
 
-Robot A with one free box on the table (``BoxScene``). On the CPU, batches above 32 run
-as a scan over vmapped chunks of 32 (``equibim_jax._batching``: jaxlib 0.10.2's batched
-Cholesky deadlocks at 64 on 2 cores). Physics throughput counts physics
-steps (``mjx.step`` calls, one per env) per second; compile time is reported apart from run
-time, and the MJX figures are given as a ratio to MuJoCo C measured in the same run.
+Robot A with one free box on the table (``BoxScene``). Physics throughput counts physics
+steps (``mjx.step`` calls, one per env) per second of a jitted ``vmap`` over the batch of a
+``lax.scan`` of steps. Compile time (the first call) is reported apart from run time (the
+best of the later calls), with the persistent compilation cache off so that compiles are
+real. MJX figures are also given as a ratio to MuJoCo C measured in the same run.
+
+MJX runs in one child process per *variant* ``DEVICES:CONTACTS``:
+
+* ``DEVICES``: CPU devices (``--xla_force_host_platform_device_count``), the batch sharded
+  over them (``equibim_jax._sharding``). XLA runs one device's program on one thread, so on
+  a multi-core CPU more devices use more cores;
+* ``CONTACTS``: ``all`` (every candidate pair's contacts) or ``K``
+  (``EnvConfig.max_contacts``: the K deepest contacts are kept).
+
+The JSON keeps the headline figures (``mjx_steps_per_s`` ...) of the first variant and
+every variant under ``variants``.
 """
 
 from __future__ import annotations
@@ -15,6 +26,7 @@ import argparse
 import json
 import os
 import platform
+import subprocess
 import sys
 import time
 
@@ -25,7 +37,6 @@ import numpy as np
 from mujoco import mjx
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
-from equibim_jax._batching import chunked_vmap, default_chunk  # noqa: E402
 from equibim_jax._io import atomic_write_json  # noqa: E402
 from equibim_jax.sim.env import Env, EnvConfig  # noqa: E402
 from equibim_jax.sim.scenes import BoxScene  # noqa: E402
@@ -44,10 +55,16 @@ def _timeit(fn, *args, reps=3):
 
 
 def bench_mjx(env: Env, batch: int, n_steps: int):
-    keys = jax.random.split(jax.random.key(0), batch)
-    states = jax.jit(chunked_vmap(env.reset))(keys)
+    from equibim_jax._sharding import data_mesh, round_up, shard_batch
+    from equibim_jax.sim._linalg import jax_cholesky
+
+    mesh = data_mesh()
+    if round_up(batch, mesh) != batch:
+        raise SystemExit(f"batch {batch} is not a multiple of the {jax.device_count()} devices")
+    keys = shard_batch(jax.random.split(jax.random.key(0), batch), mesh)
+    states = jax.jit(jax.vmap(env.reset))(keys)
     noise = 0.05 * jax.random.normal(jax.random.key(1), (batch, env.mj_model.nu))
-    ctrl = states.data.ctrl + noise
+    ctrl = states.data.ctrl + shard_batch(noise, mesh)
 
     @jax.jit
     def run(data, ctrl):
@@ -55,14 +72,16 @@ def bench_mjx(env: Env, batch: int, n_steps: int):
 
         def one(d):
             def body(d, _):
-                return mjx.step(env.mjx_model, d), None
+                with jax_cholesky():  # as Env does (equibim_jax/sim/_linalg.py)
+                    return mjx.step(env.mjx_model, d), None
 
             return jax.lax.scan(body, d, None, length=n_steps)[0]
 
-        return chunked_vmap(one)(data)
+        return jax.vmap(one)(data)
 
-    compile_s, run_s, _ = _timeit(run, states.data, ctrl)
-    return {"compile_s": compile_s, "run_s": run_s, "steps_per_s": batch * n_steps / run_s}
+    compile_s, run_s, out = _timeit(run, states.data, ctrl)
+    return {"compile_s": compile_s, "run_s": run_s, "steps_per_s": batch * n_steps / run_s,
+            "finite": bool(np.all(np.isfinite(np.asarray(out.qpos))))}
 
 
 def bench_c(model: mujoco.MjModel, qpos0, ctrl, n_steps: int):
@@ -100,18 +119,77 @@ def bench_rollout(model, qpos0, ctrl, batch: int, n_steps: int, threads: int = 2
 def bench_render(size: int, batch: int):
     env = Env(EnvConfig(obs=("image",), image_size=size), BoxScene())
     keys = jax.random.split(jax.random.key(0), batch)
-    states = jax.jit(chunked_vmap(env.reset))(keys)
-    render = jax.jit(jax.vmap(env.renderer.rgb))  # no Cholesky inside: plain vmap is safe
+    states = jax.jit(jax.vmap(env.reset))(keys)
+    render = jax.jit(jax.vmap(env.renderer.rgb))
     compile_s, run_s, _ = _timeit(render, states.data)
     return {"compile_s": compile_s, "run_s": run_s, "fps": batch / run_s}
 
 
+def child(args) -> dict:
+    """One variant, in this (child) process: MJX at each batch, and the renderer."""
+    from equibim_jax import disable_compilation_cache
+
+    disable_compilation_cache()
+    n_steps = 20 if args.quick else 100
+    env = Env(EnvConfig(obs=("qpos",), max_contacts=args.max_contacts), BoxScene())
+    d0 = env.reset(jax.random.key(0)).data
+    res = {"devices": jax.device_count(), "max_contacts": args.max_contacts,
+           "contacts": int(d0._impl.contact.dist.shape[0]), "constraint_rows": int(d0._impl.efc_J.shape[0]),
+           "mjx": {}, "render": {}}
+    for b in [int(x) for x in args.batches.split(",")]:
+        res["mjx"][str(b)] = bench_mjx(env, b, n_steps)
+    if args.render:
+        for size in (64, 96):
+            res["render"][str(size)] = bench_render(size, 64)
+    return res
+
+
+def _variant(spec: str) -> tuple[int, int | None]:
+    dev, _, con = spec.partition(":")
+    return int(dev), (None if con in ("", "all") else int(con))
+
+
+def run_variant(spec: str, args) -> dict:
+    devices, max_contacts = _variant(spec)
+    batches = ",".join(b for b in args.batches.split(",") if int(b) % devices == 0)
+    cmd = [sys.executable, os.path.abspath(__file__), "--child", "--batches", batches]
+    if max_contacts is not None:
+        cmd += ["--max-contacts", str(max_contacts)]
+    if args.quick:
+        cmd.append("--quick")
+    if spec == args.variants.split(",")[0]:
+        cmd.append("--render")
+    env = dict(os.environ)
+    flags = [f for f in env.get("XLA_FLAGS", "").split() if "force_host_platform_device_count" not in f]
+    env["XLA_FLAGS"] = " ".join(flags + [f"--xla_force_host_platform_device_count={devices}"])
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    if r.returncode != 0:
+        raise SystemExit(f"variant {spec} failed:\n{r.stderr[-3000:]}")
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", required=True, help="JSON file to write")
+    ap.add_argument("--out", help="JSON file to write")
     ap.add_argument("--quick", action="store_true", help="fewer steps (smoke run)")
     ap.add_argument("--batches", default="1,64,256")
+    ap.add_argument("--variants", default="2:24,1:all,2:all,1:24",
+                    help="comma-separated DEVICES:CONTACTS (CONTACTS 'all' or a number); the first is the headline")
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--max-contacts", type=int, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--render", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.child:
+        print(json.dumps(child(args)))
+        return
+    if not args.out:
+        ap.error("--out is required")
+    for spec in args.variants.split(","):
+        try:
+            d, k = _variant(spec)
+            assert d >= 1 and (k is None or k >= 1)
+        except (ValueError, AssertionError):
+            ap.error(f"bad variant {spec!r}: expected DEVICES:CONTACTS, e.g. 2:24 or 1:all")
 
     n_steps = 20 if args.quick else 100
     env = Env(EnvConfig(obs=("qpos",)), BoxScene())
@@ -126,35 +204,37 @@ def main(argv=None):
     ro_sps = bench_rollout(m, qpos0, ctrl0, 256, 100 if not args.quick else 10)
     print(f"mujoco.rollout, 2 threads, batch 256: {ro_sps:,.0f} steps/s")
 
-    mjx_res = {}
-    for b in [int(x) for x in args.batches.split(",")]:
-        r = bench_mjx(env, b, n_steps)
-        mjx_res[str(b)] = r
-        print(f"MJX batch {b:4d}: {r['steps_per_s']:,.0f} physics steps/s "
-              f"(compile {r['compile_s']:.1f} s, run {r['run_s']:.3f} s for {n_steps} steps), "
-              f"ratio to C {r['steps_per_s'] / c_sps:.3f}")
-
-    render = {}
-    for size in (64, 96):
-        r = bench_render(size, 64)
-        render[str(size)] = r
-        print(f"render {size}x{size}, vmapped over 64 envs: {r['fps']:,.0f} frames/s "
-              f"(compile {r['compile_s']:.1f} s)")
+    variants = {}
+    for spec in args.variants.split(","):
+        v = run_variant(spec, args)
+        variants[spec] = v
+        for b, r in v["mjx"].items():
+            print(f"MJX {spec:>7s} ({v['contacts']} contacts, {v['constraint_rows']} rows) batch {int(b):4d}: "
+                  f"{r['steps_per_s']:,.0f} physics steps/s (compile {r['compile_s']:.1f} s, run {r['run_s']:.3f} s "
+                  f"for {n_steps} steps), ratio to C {r['steps_per_s'] / c_sps:.3f}", flush=True)
+    head = variants[args.variants.split(",")[0]]
+    render = head["render"]
+    for size, r in render.items():
+        print(f"render {size}x{size}, vmapped over 64 envs: {r['fps']:,.0f} frames/s (compile {r['compile_s']:.1f} s)")
 
     out = {
-        "mjx_steps_per_s": {k: v["steps_per_s"] for k, v in mjx_res.items()},
-        "mjx_over_c": {k: v["steps_per_s"] / c_sps for k, v in mjx_res.items()},
+        "headline_variant": args.variants.split(",")[0],
+        "mjx_steps_per_s": {k: v["steps_per_s"] for k, v in head["mjx"].items()},
+        "mjx_over_c": {k: v["steps_per_s"] / c_sps for k, v in head["mjx"].items()},
+        "variants": {spec: {**v, "mjx_over_c": {k: r["steps_per_s"] / c_sps for k, r in v["mjx"].items()}}
+                     for spec, v in variants.items()},
         "c_steps_per_s": c_sps,
         "rollout_steps_per_s": ro_sps,
         "render_fps": {k: v["fps"] for k, v in render.items()},
         "compile_s": {
-            **{f"mjx_batch_{k}": v["compile_s"] for k, v in mjx_res.items()},
+            **{f"mjx_batch_{k}": v["compile_s"] for k, v in head["mjx"].items()},
             **{f"render_{k}": v["compile_s"] for k, v in render.items()},
         },
         "run_s": {
-            **{f"mjx_batch_{k}": v["run_s"] for k, v in mjx_res.items()},
+            **{f"mjx_batch_{k}": v["run_s"] for k, v in head["mjx"].items()},
             **{f"render_{k}": v["run_s"] for k, v in render.items()},
         },
+        "compile_cache": "off",
         "n_physics_steps": n_steps,
         "render_batch": 64,
         "model": {"nq": m.nq, "nv": m.nv, "ngeom": m.ngeom, "timestep": m.opt.timestep,
@@ -162,7 +242,6 @@ def main(argv=None):
         "versions": {"jax": jax.__version__, "mujoco": mujoco.__version__,
                      "python": platform.python_version(), "numpy": np.__version__},
         "device": str(jax.devices()[0]),
-        "vmap_chunk": default_chunk(),
         "cpu_count": os.cpu_count(),
         "command": " ".join(["python", "benchmarks/sim.py", *(argv or sys.argv[1:])]),
     }
