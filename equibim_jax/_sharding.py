@@ -47,6 +47,7 @@ __all__ = [
     "maybe_initialize_distributed",
     "cpu_devices_requested",
     "maybe_use_cpu_cores",
+    "train_mesh",
     "is_main_process",
     "to_host",
 ]
@@ -70,6 +71,17 @@ def data_mesh(devices: Any = None) -> Mesh:
       are reused).
     """
     return _mesh_of(tuple(jax.devices() if devices is None else devices))
+
+
+def train_mesh() -> Mesh:
+    """The mesh training shards its batch over: :func:`data_mesh`, except when
+    :func:`maybe_use_cpu_cores` split this host's CPU into devices, where it is the first
+    device alone. The train step is mostly matrix products, which XLA:CPU already runs on
+    every core from one device; split over CPU devices, each half-batch step loses that
+    and adds a gradient all-reduce (the demo's training ran about half as fast)."""
+    if _CPU_SPLIT["n"] and jax.default_backend() == "cpu":
+        return data_mesh(jax.local_devices()[:1])
+    return data_mesh()
 
 
 def is_trivial(mesh: Mesh | None) -> bool:
@@ -222,6 +234,7 @@ def maybe_initialize_distributed() -> bool:
 
 
 CPU_DEVICES_FLAG = "--xla_force_host_platform_device_count"
+_CPU_SPLIT = {"n": 0}  # devices maybe_use_cpu_cores asked for in this process (0: none)
 
 
 def _usable_cores() -> int:
@@ -261,7 +274,8 @@ def maybe_use_cpu_cores(environ: Any = None) -> int:
 
     XLA:CPU runs one device's program on one thread (matrix products aside), so batched
     physics and rendering use one core however large the batch; with one CPU device per
-    core the data mesh (:func:`data_mesh`) splits each batch over the cores. It adds
+    core the data mesh (:func:`data_mesh`) splits each batch over the cores (training keeps
+    one device: :func:`train_mesh`). It adds
     ``--xla_force_host_platform_device_count=N`` to ``XLA_FLAGS`` and returns N, or leaves
     everything as it is and returns 0 when: N is 1, ``XLA_FLAGS`` already sets the count,
     a JAX backend has already started (the flag would be ignored), or a multi-process run
@@ -278,6 +292,8 @@ def maybe_use_cpu_cores(environ: Any = None) -> int:
     if xla_bridge.backends_are_initialized():
         return 0
     env["XLA_FLAGS"] = f"{flags} {CPU_DEVICES_FLAG}={n}".strip()
+    if environ is None:
+        _CPU_SPLIT["n"] = n
     return n
 
 

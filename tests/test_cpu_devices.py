@@ -10,9 +10,9 @@ from equibim_jax._sharding import cpu_devices_requested, maybe_use_cpu_cores
 
 _PROBE = """
 import jax  # imported first, as the CLI does: the flag must still take effect
-from equibim_jax._sharding import maybe_use_cpu_cores
+from equibim_jax._sharding import data_mesh, maybe_use_cpu_cores, mesh_shape, train_mesh
 n = maybe_use_cpu_cores()
-print(n, jax.device_count(), maybe_use_cpu_cores())
+print(n, jax.device_count(), maybe_use_cpu_cores(), mesh_shape(data_mesh())["data"], mesh_shape(train_mesh())["data"])
 """
 
 
@@ -34,11 +34,13 @@ def test_requested_count_parsing():
 
 
 def test_flag_is_added_before_the_backend_starts_and_respected_after():
-    # three devices asked for, whatever this machine has; the second call is a no-op
-    assert _run(EQUIBIM_JAX_CPU_DEVICES="3") == ["3", "3", "0"]
-    assert _run(EQUIBIM_JAX_CPU_DEVICES="off") == ["0", "1", "0"]
-    # a count the user already set in XLA_FLAGS wins
-    assert _run(EQUIBIM_JAX_CPU_DEVICES="3", XLA_FLAGS="--xla_force_host_platform_device_count=2") == ["0", "2", "0"]
+    # three devices asked for, whatever this machine has; the second call is a no-op; the
+    # data mesh spans them, training keeps one device (train_mesh)
+    assert _run(EQUIBIM_JAX_CPU_DEVICES="3") == ["3", "3", "0", "3", "1"]
+    assert _run(EQUIBIM_JAX_CPU_DEVICES="off") == ["0", "1", "0", "1", "1"]
+    # a count the user already set in XLA_FLAGS wins, and then training uses every device
+    assert _run(EQUIBIM_JAX_CPU_DEVICES="3", XLA_FLAGS="--xla_force_host_platform_device_count=2") == \
+        ["0", "2", "0", "2", "2"]
 
 
 def test_no_change_once_a_backend_has_started():

@@ -25,7 +25,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from equibim_jax._io import atomic_write_bytes
-from equibim_jax._sharding import is_main_process, mesh_shape
+from equibim_jax._sharding import is_main_process, mesh_shape, train_mesh
 from equibim_jax.config import TaskConfig, config_from_dict, save_config
 from equibim_jax.data.dataset import Demos, load
 from equibim_jax.data.generate import env_from_meta
@@ -177,7 +177,7 @@ def train(
         save_config(out / "config.json", {
             **config, "data": {"path": str(data) if not isinstance(data, Demos) else None,
                                "episodes": demos.n_episodes, "steps": demos.n_steps},
-            "devices": jax.device_count(), "mesh": mesh_shape()})
+            "devices": jax.device_count(), "mesh": mesh_shape(train_mesh())})
     loop = make_train_loop(tc, prep.dataset, prep.sym if tc.uses_mirror else None)
     probe = _probe(policy, prep.dataset, prep.sym)
     key = base_key(tc)

@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from equibim_jax._sharding import check_divisible, constrain_batch, constrain_replicated, data_mesh, replicate
+from equibim_jax._sharding import check_divisible, constrain_batch, constrain_replicated, replicate, train_mesh
 from equibim_jax._xla_options import train_compiler_options
 from equibim_jax.data.windows import OnDeviceDataset, sample_batch
 from equibim_jax.policies.base import Policy
@@ -315,7 +315,7 @@ def make_train_step(train_config: TrainConfig, dataset: OnDeviceDataset,
     Raises:
       ValueError: ``batch_size`` is not a multiple of the device count.
     """
-    mesh = data_mesh()
+    mesh = train_mesh()
     step = build_step_fn(train_config, symmetry, mesh=mesh)
     return BoundTrainFn(jax.jit(step, compiler_options=train_compiler_options()),
                         replicate(dataset, mesh), mesh)
@@ -334,7 +334,7 @@ def make_train_loop(train_config: TrainConfig, dataset: OnDeviceDataset, symmetr
       ValueError: ``batch_size`` is not a multiple of the device count.
     """
     k_steps = train_config.steps_per_dispatch if num_steps is None else num_steps
-    mesh = data_mesh()
+    mesh = train_mesh()
     step_fn = build_step_fn(train_config, symmetry, mesh=mesh)
 
     @functools.partial(jax.jit, compiler_options=train_compiler_options())
