@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from equibim_jax._io import atomic_write_json
-from equibim_jax.config import ConfigError, EvalConfig, TaskConfig, config_from_dict, config_to_dict, find_config
+from equibim_jax.config import ConfigError, EvalConfig, TaskConfig, config_from_dict, config_to_dict, find_config, load_config
 
 __all__ = ["ARMS", "Cell", "Experiment", "Manifest", "load_experiment", "run_experiment", "estimate",
            "expert_rollout", "random_rollout", "unit_key", "experiment_path", "DEFAULT_OUT"]
@@ -145,12 +145,7 @@ def _merge(base: Mapping, over: Mapping) -> dict:
 
 
 def _read(path: Path) -> dict:
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise ConfigError(f"{path} is not valid JSON: {e}") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path} must hold a JSON object")
+    data = load_config(path)  # a JSON object, or a ConfigError naming the file
     unknown = set(data) - _TOP_KEYS
     if unknown:
         raise ConfigError(f"{path}: unknown experiment keys {sorted(unknown)}; valid: {sorted(_TOP_KEYS)}")
