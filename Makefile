@@ -23,7 +23,7 @@ test: $(STAMP)
 	$(VENV)/bin/python -m pytest -m "not slow" -q -n 2 --dist loadfile --durations=20
 
 test-slow: $(STAMP)
-	$(VENV)/bin/python -m pytest -m slow -q -n 2 --dist loadfile --durations=30
+	$(VENV)/bin/python tests/run_by_file.py -j 2 -m slow -o timeout=1800 -o timeout_method=thread
 
 bench: $(STAMP)
 	mkdir -p results && $(VENV)/bin/python benchmarks/sim.py --out results/bench_sim.json
