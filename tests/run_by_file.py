@@ -7,7 +7,7 @@ held by one file's compiled programs is returned when it ends.
 
 Usage::
 
-    python tests/run_by_file.py [-j 2] [--timeout SECONDS] [-m slow] [PYTEST_ARGS ...]
+    python tests/run_by_file.py [-j 2] [--timeout SECONDS] [-m slow] [--paths P ...] [PYTEST_ARGS ...]
 
 Exit status 0 when every file passed (or was skipped entirely), 1 otherwise. Files run
 longest-first by the durations of the previous run (kept in ``.pytest_cache``), in
@@ -31,9 +31,10 @@ ROOT = Path(__file__).resolve().parent.parent
 DURATIONS = ROOT / ".pytest_cache" / "run_by_file_durations.json"
 
 
-def collect(marker: str, extra: list[str]) -> list[str]:
-    """The test files holding at least one test selected by ``-m marker``, in collection order."""
-    cmd = [sys.executable, "-m", "pytest", "-m", marker, "--collect-only", "-q", *extra]
+def collect(marker: str, extra: list[str], paths: list[str]) -> list[str]:
+    """The test files holding at least one test selected by ``-m marker``, in collection order
+    (as paths relative to the repository, or absolute when outside it)."""
+    cmd = [sys.executable, "-m", "pytest", "-m", marker, "--collect-only", "-q", *extra, *paths]
     res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     if res.returncode not in (0, 5):  # 5: nothing collected
         sys.stdout.write(res.stdout + res.stderr)
@@ -42,6 +43,8 @@ def collect(marker: str, extra: list[str]) -> list[str]:
     for line in res.stdout.splitlines():
         if "::" in line:
             f = line.split("::", 1)[0]
+            if not (ROOT / f).exists():  # ids are relative to pytest's rootdir: the common folder of paths
+                f = next((str(Path(d) / f) for d in paths if (Path(d) / f).exists()), f)
             if f not in files:
                 files.append(f)
     return files
@@ -71,15 +74,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("-m", "--marker", default="slow", help='pytest -m expression (default "slow")')
     p.add_argument("--timeout", type=float, default=2400.0,
                    help="seconds before a file's process is killed and the file counted failed")
+    p.add_argument("--paths", nargs="+", default=[], help="where to collect (default: the testpaths)")
+    p.add_argument("--durations-file", type=Path, default=DURATIONS,
+                   help="where the per-file durations that order the next run are kept")
     a, extra = p.parse_known_args(argv)
     if a.jobs < 1:
         p.error(f"--jobs must be >= 1, got {a.jobs}")
-    files = collect(a.marker, extra)
+    files = collect(a.marker, extra, [str(Path(x).resolve()) for x in a.paths])
     if not files:
         print(f"no tests selected by -m {a.marker!r}")
         return 0
     try:
-        previous = json.loads(DURATIONS.read_text())
+        previous = json.loads(a.durations_file.read_text())
     except (OSError, ValueError):
         previous = {}
     files.sort(key=lambda f: -float(previous.get(f, 0.0)))  # stable: collection order on a first run
@@ -105,8 +111,8 @@ def main(argv: list[str] | None = None) -> int:
         list(pool.map(one, files))
     failed = [r[0] for r in results if r[1] not in (0, 5)]
     try:
-        DURATIONS.parent.mkdir(exist_ok=True)
-        DURATIONS.write_text(json.dumps({**previous, **{r[0]: round(r[2], 1) for r in results}}, indent=1))
+        a.durations_file.parent.mkdir(parents=True, exist_ok=True)
+        a.durations_file.write_text(json.dumps({**previous, **{r[0]: round(r[2], 1) for r in results}}, indent=1))
     except OSError:
         pass
     print(f"{len(files) - len(failed)} of {len(files)} files passed in {time.perf_counter() - t0:.0f} s"
