@@ -73,6 +73,8 @@ WHAT = {
     "online_vs_offline": "online (`train --online`) against offline (generate, then train) training "
                          "of one policy on the same wall-clock budget, compiles included, and the "
                          "closed-loop success of each",
+    "joint_train": "baseline and +EquiBim of `make demo-long` trained one after the other, in one "
+                   "compiled program, and on two CPU devices at once: seconds per dispatch, compile time",
     "train_policies": "every policy (dp, dp3, act) at its default config: ms per train step with and "
                       "without the mirrored `L_sym` batch, FLOPs, GFLOP/s against a dense matmul, "
                       "compile time, memory, inference per chunk, the PyTorch twins' step, and the "
@@ -262,6 +264,8 @@ def kind_of(d: dict) -> str | None:
     if "budget_s" in d.get("settings", {}) and ("online" in d or "offline" in d):
         return "online_vs_offline"
     bench = str(d.get("benchmark", ""))
+    if bench == "joint_train":
+        return "joint_train"
     if bench.startswith("env.step with and without observing"):
         return "obs_cost"
     if bench.startswith("closed-loop policy rollout"):
@@ -271,8 +275,10 @@ def kind_of(d: dict) -> str | None:
 
 SCRIPT = {"demos": "demos.py", "sim": "sim.py", "obs_cost": "obs_cost.py", "rollout": "rollout.py",
           "train": "train.py", "train_compare": "train.py", "layers": "layers.py",
-          "train_policies": "train.py", "online_vs_offline": "online_vs_offline.py", "contacts": "contacts.py"}
-ORDER = ["sim", "contacts", "demos", "obs_cost", "rollout", "train_policies", "online_vs_offline", "train_compare",
+          "train_policies": "train.py", "online_vs_offline": "online_vs_offline.py", "contacts": "contacts.py",
+          "joint_train": "joint_train.py"}
+ORDER = ["sim", "contacts", "demos", "obs_cost", "rollout", "train_policies", "online_vs_offline", "joint_train",
+         "train_compare",
          "train", "layers"]
 
 
@@ -773,9 +779,37 @@ large enough to absorb the physics. Neither holds here, and neither was measured
 """
 
 
+def section_joint_train(name: str, d: dict) -> str:
+    one, two = d["one_device"], d["two_devices"]
+    cmd = f"python benchmarks/joint_train.py --demos {d['demos']} --k {d['k']} --repeats {d['repeats']} --out benchmarks/results/{name}"
+    k = d["k"]
+    rows = [
+        ["baseline alone", _f(one["baseline"]["compile_s"], 1), _f(one["baseline"]["s_per_dispatch"], 3), ""],
+        ["+EquiBim alone", _f(one["equibim"]["compile_s"], 1), _f(one["equibim"]["s_per_dispatch"], 3), ""],
+        ["one after the other (sum)", _f(one["baseline"]["compile_s"] + one["equibim"]["compile_s"], 1),
+         _f(d["separate_s_per_dispatch"], 3), "1 (reference)"],
+        ["both in one program", _f(one["one_program"]["compile_s"], 1), _f(one["one_program"]["s_per_dispatch"], 3),
+         _f(d["speedup_one_program"], 2)],
+        ["one per CPU device, at once (2-device process)", "", _f(two["both"]["s_per_dispatch"], 3),
+         _f(d["speedup_two_devices"], 2)],
+    ]
+    t = d["both_runs_10k_steps_s"]
+    return (f"## Two runs together: `{name}`\n\n{_cmd_block(cmd)}\n\n"
+            f"The demo's DP3 policy at `make demo-long`'s settings (batch {d['batch_size']}, `L_sym` on the "
+            f"whole batch), {d['demos']} expert demos; seconds per dispatch of {k} steps (median of "
+            f"{d['repeats']} after the compiling one), compile cache off, the package's train-step XLA "
+            f"options on.\n\n"
+            + _table(["how", "compile (s)", f"s per {k} steps of each run", "speed-up"], rows)
+            + f"\n\nBoth runs' 10,000 steps would take {t['separate']:.0f} s one after the other, "
+            f"{t['one_program']:.0f} s in one program and {t['two_devices']:.0f} s on two devices. "
+            "`equibim demo` and `equibim experiment` train baseline and +EquiBim in one program "
+            "(`equibim_jax.training.train_together`).")
+
+
 SECTIONS = {"demos": section_demos, "sim": section_sim, "contacts": section_contacts, "obs_cost": section_obs_cost, "rollout": section_rollout,
             "train": section_train, "train_compare": section_train_compare, "layers": section_layers,
-            "train_policies": section_train_policies, "online_vs_offline": section_online_vs_offline}
+            "train_policies": section_train_policies, "online_vs_offline": section_online_vs_offline,
+            "joint_train": section_joint_train}
 NOTES_AFTER = {"sim": NOTES_SIM, "demos": NOTES_DEMOS, "rollout": NOTES_OBS, "layers": NOTES_TRAIN,
                "train_policies": NOTES_POLICIES}
 
@@ -798,7 +832,7 @@ def render(results: pathlib.Path = RESULTS) -> str:
     # Each kind's notes come after the last section they explain ("why" prose groups).
     groups = {"sim": "sim", "contacts": "contacts", "demos": "demos", "obs_cost": "rollout", "rollout": "rollout", "train_compare": "layers",
               "train": "layers", "layers": "layers", "train_policies": "train_policies",
-              "online_vs_offline": "train_policies"}
+              "online_vs_offline": "train_policies", "joint_train": "train_policies"}
     present = {k for _, k, _ in known}
     for i, (name, kind, d) in enumerate(known):
         parts.append(SECTIONS[kind](name, d))

@@ -380,7 +380,7 @@ def _demo(args: list[str], command: str) -> None:
     print(f"equivariance error of the sampled actions, |S pi(S O, S z) - pi(O, z)| on the demo windows: "
           f"{', '.join(sq)}")
     print(f"wall time {res['wall_time_s']:.0f} s (generate {t['generate_s']:.0f} s, train "
-          f"{t['train_baseline_s']:.0f} + {t['train_equibim_s']:.0f} s, eval {t['eval_s']:.0f} s; compile included)")
+          f"{t['train_s']:.0f} s for both policies, eval {t['eval_s']:.0f} s; compile included)")
     print(f"wrote {cfg.out_dir}/demo.json, {cfg.out_dir}/demo.png and {cfg.out_dir}/demo/config.json")
 
 

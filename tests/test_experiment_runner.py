@@ -82,7 +82,7 @@ def test_resume_skips_done_and_redoes_interrupted(smoke, monkeypatch):
     def no_eval(*a, **k):
         raise AssertionError("a finished evaluation was redone")
 
-    monkeypatch.setattr(trun, "train", no_train)
+    monkeypatch.setattr(trun, "train_together", no_train)
     monkeypatch.setattr(ev_mod, "evaluate_policies", no_eval)
     main(["experiment", "smoke", "--quick", "--out-dir", str(smoke), "--no-progress"])
     assert _units(smoke) == before  # nothing recorded anew
@@ -93,7 +93,7 @@ def test_resume_skips_done_and_redoes_interrupted(smoke, monkeypatch):
     # checkpoint) and an evaluation with a half-written result file and no manifest record.
     monkeypatch.undo()
     calls = {"train": 0, "eval": 0}
-    real_train, real_eval = trun.train, ev_mod.evaluate_policies
+    real_train, real_eval = trun.train_together, ev_mod.evaluate_policies
 
     def counting_train(*a, **k):
         calls["train"] += 1
@@ -103,7 +103,7 @@ def test_resume_skips_done_and_redoes_interrupted(smoke, monkeypatch):
         calls["eval"] += 1
         return real_eval(*a, **k)
 
-    monkeypatch.setattr(trun, "train", counting_train)
+    monkeypatch.setattr(trun, "train_together", counting_train)
     monkeypatch.setattr(ev_mod, "evaluate_policies", counting_eval)
     m = Manifest(smoke)
     (tkey, trec), = [(k, u) for k, u in m.units.items() if u["kind"] == "train"][:1]

@@ -21,6 +21,7 @@ from equibim_jax.training import (
     base_key,
     create_train_state,
     latest_step,
+    make_joint_train_loop,
     make_optimizer,
     make_train_loop,
     policy_loss,
@@ -456,6 +457,30 @@ def test_exact_resume(setup, tmp_path, monkeypatch):
     _assert_trees_equal(norm2, norm)
     assert config_from_dict(PolicyConfig, saved["policy"]) == POLICY
     assert config_from_dict(TrainConfig, saved["train"]) == TRAIN
+
+
+def test_joint_loop_gives_each_run_its_own_steps(setup):
+    """Baseline and +EquiBim in one program take the steps each takes alone."""
+    base = dataclasses.replace(TRAIN, sym_weight=0.0, seed=0)
+    sym = dataclasses.replace(TRAIN, seed=1)
+    alone = []
+    for tc in (base, sym):
+        st = create_train_state(DP3, tc)
+        st, m = make_train_loop(tc, setup["dataset"], setup["sym"] if tc.uses_mirror else None)(st, base_key(tc))
+        alone.append((st, m))
+    joint = make_joint_train_loop((base, sym), setup["dataset"], (None, setup["sym"]))
+    states, metrics = joint((create_train_state(DP3, base), create_train_state(DP3, sym)), (base_key(base), base_key(sym)))
+    for (st, m), st2, m2 in zip(alone, states, metrics):
+        assert int(st2.step) == int(st.step) == TRAIN.steps_per_dispatch
+        for x, y in zip(jax.tree.leaves(st.params), jax.tree.leaves(st2.params)):
+            np.testing.assert_allclose(np.asarray(y), np.asarray(x), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(m2["total"], m["total"], rtol=1e-5)
+    assert float(metrics[0]["sym"].max()) == 0.0 < float(metrics[1]["sym"].min())
+    # the runs really differ (else the comparison above says nothing)
+    assert not np.allclose(np.asarray(jax.tree.leaves(states[0].params)[0]),
+                           np.asarray(jax.tree.leaves(states[1].params)[0]))
+    with pytest.raises(ValueError, match="one symmetry per train config"):
+        make_joint_train_loop((base, sym), setup["dataset"], (None,))
 
 
 def test_checkpoint_errors(setup, tmp_path):

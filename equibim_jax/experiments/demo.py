@@ -26,7 +26,7 @@ from equibim_jax.evaluation.evaluate import evaluate_policies
 from equibim_jax.evaluation.open_loop import open_loop_errors
 from equibim_jax.evaluation.stats import paired_sign_test
 from equibim_jax.policies import DP3Config, PolicyConfig
-from equibim_jax.training.run import load_run, prepare_data, read_log, train
+from equibim_jax.training.run import load_run, prepare_data, read_log, train_together
 from equibim_jax.training.train_step import TrainConfig
 
 __all__ = ["DemoConfig", "DEFAULT_CONFIG", "load_demo_config", "run_demo", "format_table", "plot_demo"]
@@ -113,18 +113,21 @@ def run_demo(cfg: DemoConfig = DemoConfig(), command: str = "", progress: bool =
 
     results: dict = {}
     params = {}
+    configs = {name: dataclasses.replace(tc, seed=cfg.seed) for name, tc in cfg.run_configs().items()}
+    for name in configs:
+        shutil.rmtree(work / name, ignore_errors=True)
+    t0 = time.perf_counter()
+    # both runs in one compiled program, each taking the steps it would take alone
+    summaries = train_together(demos, {name: (work / name, tc) for name, tc in configs.items()}, cfg.policy,
+                               env=env, normalizer=normalizer, progress=progress,
+                               desc="train " + " + ".join(configs))
+    timings["train_s"] = time.perf_counter() - t0
     policy = None
-    for name, tc in cfg.run_configs().items():
-        run_dir = work / name
-        shutil.rmtree(run_dir, ignore_errors=True)
-        t0 = time.perf_counter()
-        summary = train(demos, run_dir, cfg.policy, dataclasses.replace(tc, seed=cfg.seed), env=env,
-                        normalizer=normalizer, progress=progress, desc=f"train {name}")
-        timings[f"train_{name}_s"] = time.perf_counter() - t0
-        run = load_run(run_dir)
+    for name, tc in configs.items():
+        run = load_run(work / name)
         policy = run.policy
         params[name] = run.state.ema_params
-        results[name] = {"sym_weight": tc.sym_weight, "train": summary}
+        results[name] = {"sym_weight": tc.sym_weight, "train": summaries[name]}
 
     # Open-loop errors on the demos and on their mirror images: cheap, and informative
     # even where closed-loop success is 0 for everyone.
@@ -173,7 +176,7 @@ def _first_call_split(first_s: float | None, total_s: float, calls: int) -> dict
 def time_breakdown(cfg: "DemoConfig", timings: dict, gen_stats: dict, results: dict, ev: dict) -> dict:
     """Where the demo's time went, per stage: ``{stage: {"wall_s", "compile_s", "run_s"}}``.
 
-    Stages: ``generate``, ``train_<run>``, ``open_loop``, ``eval_<run>``. Compile time is
+    Stages: ``generate``, ``train`` (both runs in one program), ``open_loop``, ``eval_<run>``. Compile time is
     estimated per stage from its first call against its later, equal-shaped calls
     (:func:`_first_call_split`): generation chunks, training dispatches, evaluation
     batches (both sides of a run share them). ``open_loop`` makes one call per run and is
@@ -182,11 +185,10 @@ def time_breakdown(cfg: "DemoConfig", timings: dict, gen_stats: dict, results: d
     out = {"generate": {"wall_s": timings["generate_s"],
                         **_first_call_split(gen_stats.get("first_chunk_s_incl_compile"),
                                             gen_stats["wall_s"], int(gen_stats.get("chunks", 1)))}}
-    for name, tc in cfg.run_configs().items():
-        tr = results[name]["train"]
-        calls = -(-(int(tr["steps"]) - int(tr.get("resumed_from", 0))) // tc.steps_per_dispatch)
-        out[f"train_{name}"] = {"wall_s": timings[f"train_{name}_s"],
-                                **_first_call_split(tr.get("first_dispatch_s_incl_compile"), tr["train_s"], calls)}
+    tr = results["equibim"]["train"]
+    calls = -(-(int(tr["steps"]) - int(tr.get("resumed_from", 0))) // cfg.train.steps_per_dispatch)
+    out["train"] = {"wall_s": timings["train_s"],
+                    **_first_call_split(tr.get("first_dispatch_s_incl_compile"), tr["train_s"], calls)}
     out["open_loop"] = {"wall_s": timings["open_loop_s"], "compile_s": None, "run_s": None}
     for name in RUNS:
         batch_s = ev[name].get("trained", {}).get("batch_s", [])

@@ -401,36 +401,50 @@ def run_cell(cell: Cell, arms: tuple, root: Path, manifest: Manifest, progress: 
     from equibim_jax.evaluation.evaluate import evaluate_policies
     from equibim_jax.evaluation.stats import paired_sign_test
     from equibim_jax.training import run as trun
+    from equibim_jax.training.checkpoint import latest_step
 
     envs = {} if envs is None else envs
     dkey, demos = _data_unit(cell, root, manifest, progress, envs)
     normalizer = None
-    run_keys, run_dirs, train_info = {}, {}, {}
+    run_keys, run_dirs, train_info, pending = {}, {}, {}, {}
     for arm in arms:
         tc = cell.arm_config(arm)
         rkey = unit_key("train", {"data": dkey, "policy": cell.policy, "train": tc})
         rel = f"units/runs/{cell.task.name}-{rkey}"  # arms with equal configs share it
         run_keys[arm], run_dirs[arm] = rkey, root / rel
-        summ = root / rel / "summary.json"
-        if not manifest.done(rkey) or not summ.exists():
-            env = _env(cell.task, envs)
-            if normalizer is None:  # one normaliser for every arm of the cell
-                normalizer = trun.prepare_data(demos, env, cell.policy).normalizer
-            t0 = time.perf_counter()
-            s = trun.train(demos, root / rel, cell.policy, tc, env=env, normalizer=normalizer,
-                           progress=progress, desc=f"{cell.name} {arm}")
-            wall = time.perf_counter() - t0
+        if (not manifest.done(rkey) or not (root / rel / "summary.json").exists()) and rkey not in pending:
+            pending[rkey] = (arm, tc, rel)
+    # the unfinished runs of the cell train together (one program), grouped by the step
+    # they resume from; each is recorded as its own unit with its share of the time
+    groups: dict = {}
+    for rkey, (arm, tc, rel) in pending.items():
+        groups.setdefault((latest_step(root / rel / "ckpt"), tc.total_steps, tc.steps_per_dispatch), []).append(rkey)
+    for group in groups.values():
+        env = _env(cell.task, envs)
+        if normalizer is None:  # one normaliser for every arm of the cell
+            normalizer = trun.prepare_data(demos, env, cell.policy).normalizer
+        t0 = time.perf_counter()
+        sums = trun.train_together(demos, {pending[k][0]: (root / pending[k][2], pending[k][1]) for k in group},
+                                   cell.policy, env=env, normalizer=normalizer, progress=progress,
+                                   desc=f"{cell.name} " + " + ".join(pending[k][0] for k in group))
+        wall = time.perf_counter() - t0
+        for rkey in group:
+            arm, tc, rel = pending[rkey]
+            s = sums[arm]
             if not s.get("final") and (root / rel / "train.jsonl").exists():  # resumed at its end
                 rows = trun.read_log(root / rel / "train.jsonl")
                 s["final"] = rows[-1] if rows else {}
-            s = {**s, "wall_s": wall}
-            atomic_write_json(summ, s)
+            share = wall / len(group)
+            s = {**s, "wall_s": wall, "wall_s_share": share}
+            atomic_write_json(root / rel / "summary.json", s)
             done_steps = s["steps"] - s["resumed_from"]
+            per_step = _steady_step_s(s, done_steps, tc.steps_per_dispatch)
             manifest.record(rkey, kind="train", path=f"{rel}/summary.json", cell=cell.name, arm=arm,
                             task=cell.task.name, policy=cell.preset, steps=done_steps,
-                            total_steps=tc.total_steps, wall_s=wall,
-                            s_per_step=_steady_step_s(s, done_steps, tc.steps_per_dispatch))
-        s = json.loads(summ.read_text())
+                            total_steps=tc.total_steps, wall_s=share, trained_with=len(group),
+                            s_per_step=None if per_step is None else per_step / len(group))
+    for arm in arms:
+        s = json.loads((run_dirs[arm] / "summary.json").read_text())
         train_info[arm] = {"steps": s["steps"], "final": s.get("final", {})}
     evals, tests, eval_keys = {}, {}, {}
     for label, opts in cell.evals:

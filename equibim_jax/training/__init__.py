@@ -26,7 +26,7 @@ from equibim_jax.training.online import (
     make_online_train_loop,
     sample_ring,
 )
-from equibim_jax.training.run import Run, TrainingDiverged, load_run, prepare_data, read_log, train
+from equibim_jax.training.run import Run, TrainingDiverged, load_run, prepare_data, read_log, train, train_together
 from equibim_jax.training.train_step import (
     BoundTrainFn,
     TrainConfig,
@@ -34,6 +34,7 @@ from equibim_jax.training.train_step import (
     base_key,
     build_step_fn,
     create_train_state,
+    make_joint_train_loop,
     make_optimizer,
     make_train_loop,
     make_train_step,
@@ -43,8 +44,8 @@ from equibim_jax.training.train_step import (
 __all__ = [
     "BoundTrainFn", "CheckpointError", "EmaConfig", "OnlineConfig", "OnlineLoop", "RingBuffer", "Run", "SYM_NORMS", "TrainConfig", "TrainState",
     "TrainingDiverged", "base_key", "build_step_fn", "create_train_state", "ema_decay", "ema_update",
-    "equivariance_error", "latest_step", "load_run", "make_optimizer", "make_train_loop",
+    "equivariance_error", "latest_step", "load_run", "make_joint_train_loop", "make_optimizer", "make_train_loop",
     "make_train_step", "mirror_batch", "policy_loss", "prepare_data", "read_checkpoint_config",
     "read_log", "restore_checkpoint", "save_checkpoint", "sym_loss", "sym_ramp", "sym_residual_norm",
-    "train", "buffer_from_frames", "empty_buffer", "make_online_train_loop", "sample_ring",
+    "train", "train_together", "buffer_from_frames", "empty_buffer", "make_online_train_loop", "sample_ring",
 ]

@@ -13,6 +13,7 @@ writes ``config.json``, ``train.jsonl`` and the progress bar.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import time
@@ -41,9 +42,15 @@ from equibim_jax.training.checkpoint import (
     save_checkpoint,
 )
 from equibim_jax.training.losses import equivariance_error
-from equibim_jax.training.train_step import TrainConfig, TrainState, base_key, create_train_state, make_train_loop
+from equibim_jax.training.train_step import (
+    TrainConfig,
+    TrainState,
+    base_key,
+    create_train_state,
+    make_joint_train_loop,
+)
 
-__all__ = ["TrainingDiverged", "Run", "prepare_data", "train", "load_run", "read_log"]
+__all__ = ["TrainingDiverged", "Run", "prepare_data", "train", "train_together", "load_run", "read_log"]
 
 
 class TrainingDiverged(RuntimeError):
@@ -153,70 +160,145 @@ def train(
         the failing dispatch is saved as a checkpoint (unless one of that step exists).
       CheckpointError: ``out_dir`` holds a checkpoint of a different config or normaliser.
     """
+    return train_together(data, {desc: (out_dir, train_config)}, policy_config, env=env, normalizer=normalizer,
+                          checkpoint_every=checkpoint_every, progress=progress, desc=desc,
+                          max_wall_s=max_wall_s)[desc]
+
+
+class _Arm:
+    """One run of :func:`train_together`: its folder, config and last log row."""
+
+    def __init__(self, name: str, out_dir: str | Path, tc: TrainConfig, config: dict):
+        self.name, self.tc, self.config = name, tc, config
+        self.out = Path(out_dir)
+        self.ckpt = self.out / "ckpt"
+        self.log_path = self.out / "train.jsonl"
+        self.row: dict[str, Any] = {}
+
+
+def train_together(
+    data: str | Path | Demos,
+    runs: dict[str, tuple[str | Path, TrainConfig]],
+    policy_config: PolicyConfig,
+    *,
+    env: Env | None = None,
+    normalizer: Normalizer | None = None,
+    checkpoint_every: int | None = None,
+    progress: bool = True,
+    desc: str = "train",
+    max_wall_s: float | None = None,
+) -> dict[str, dict]:
+    """Train several runs of one policy on one dataset in lockstep, in one compiled
+    program (:func:`~equibim_jax.training.train_step.make_joint_train_loop`); each run
+    folder ends up as :func:`train` would leave it.
+
+    Baseline and +EquiBim differ only in their train configs, so the demo and the
+    experiment runner train both at once: one compile instead of two, and XLA overlaps
+    the two runs' small operations.
+
+    Args:
+      runs: ``{name: (run folder, train config)}``; the configs must agree on
+        ``total_steps`` and ``steps_per_dispatch``. Other arguments as in :func:`train`;
+        ``normalizer`` (or the one fitted on ``data``) is used by every run.
+    Returns:
+      ``{name: summary}`` as :func:`train` returns, plus ``trained_with`` (the names);
+      ``train_s`` and the first dispatch's time are those of the joint program.
+    Raises:
+      ValueError: no runs, mismatched lengths, or runs resumed from different steps.
+      TrainingDiverged, CheckpointError: as in :func:`train` (for any of the runs).
+    """
+    if not runs:
+        raise ValueError("train_together needs at least one run")
+    lengths = {(tc.total_steps, tc.steps_per_dispatch) for _, tc in runs.values()}
+    if len(lengths) > 1:
+        raise ValueError("runs trained together must share total_steps and steps_per_dispatch, got "
+                         + ", ".join(f"{n}: {tc.total_steps}/{tc.steps_per_dispatch}" for n, (_, tc) in runs.items()))
     demos = load(data) if not isinstance(data, Demos) else data
     env = env if env is not None else env_from_meta(dict(demos.meta))
     prep = prepare_data(demos, env, policy_config, normalizer)
     policy = make_policy(prep.policy_config.name, prep.policy_config)
-    tc = train_config
-    config = {"task": TaskConfig(env.task, env.task_options), "policy": prep.policy_config, "train": tc}
+    task = TaskConfig(env.task, env.task_options)
+    arms = [_Arm(n, d, tc, {"task": task, "policy": prep.policy_config, "train": tc}) for n, (d, tc) in runs.items()]
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    ckpt = out / "ckpt"
-    state = create_train_state(policy, tc)
-    start = 0
-    if latest_step(ckpt) is not None:
-        state, saved_norm, _ = restore_checkpoint(ckpt, state, expected_config=config)
-        if normalizer is not None and not _same_normalizer(normalizer, saved_norm):
-            raise CheckpointError(f"{ckpt}: was saved with a different normaliser than the one given")
-        prep = prep._replace(normalizer=saved_norm, sym=normalized_symmetry(
-            env.symmetry_ops(tuple(prep.policy_config.obs_keys), prep.policy_config.action_key), saved_norm))
-        start = int(state.step)
+    states, saved = [], None
+    for arm in arms:
+        arm.out.mkdir(parents=True, exist_ok=True)
+        state = create_train_state(policy, arm.tc)
+        if latest_step(arm.ckpt) is not None:
+            state, arm_norm, _ = restore_checkpoint(arm.ckpt, state, expected_config=arm.config)
+            if normalizer is not None and not _same_normalizer(normalizer, arm_norm):
+                raise CheckpointError(f"{arm.ckpt}: was saved with a different normaliser than the one given")
+            if saved is not None and not _same_normalizer(saved, arm_norm):
+                raise CheckpointError(f"{arm.ckpt}: was saved with a different normaliser than "
+                                      f"{arms[0].ckpt}; train these runs separately")
+            saved = arm_norm
+        states.append(state)
+    steps = {int(s.step) for s in states}
+    if len(steps) > 1:
+        raise ValueError("runs trained together must resume from the same step, got "
+                         + ", ".join(f"{a.name}: {int(s.step)}" for a, s in zip(arms, states))
+                         + "; train them separately to bring them level")
+    start = steps.pop()
+    if saved is not None:
+        prep = prep._replace(normalizer=saved, sym=normalized_symmetry(
+            env.symmetry_ops(tuple(prep.policy_config.obs_keys), prep.policy_config.action_key), saved))
     lead = is_main_process()  # the one process that writes config.json, train.jsonl, the bar
-    if lead:
-        save_config(out / "config.json", {
-            **config, "data": {"path": str(data) if not isinstance(data, Demos) else None,
-                               "episodes": demos.n_episodes, "steps": demos.n_steps},
-            "devices": jax.device_count(), "mesh": mesh_shape(train_mesh())})
-    loop = make_train_loop(tc, prep.dataset, prep.sym if tc.uses_mirror else None)
+    for arm in arms:
+        if lead:
+            save_config(arm.out / "config.json", {
+                **arm.config, "data": {"path": str(data) if not isinstance(data, Demos) else None,
+                                       "episodes": demos.n_episodes, "steps": demos.n_steps},
+                "devices": jax.device_count(), "mesh": mesh_shape(train_mesh())})
+        if lead and start and arm.log_path.exists():  # drop rows logged after the checkpoint we resume from
+            rows = [r for r in read_log(arm.log_path) if r.get("step", 0) <= start]
+            atomic_write_bytes(arm.log_path, "".join(json.dumps(r) + "\n" for r in rows).encode())
+    loop = make_joint_train_loop(tuple(a.tc for a in arms), prep.dataset,
+                                 tuple(prep.sym if a.tc.uses_mirror else None for a in arms))
     probe = _probe(policy, prep.dataset, prep.sym)
-    key = base_key(tc)
-    log_path = out / "train.jsonl"
-    if lead and start and log_path.exists():  # drop rows logged after the checkpoint we resume from
-        rows = [r for r in read_log(log_path) if r.get("step", 0) <= start]
-        atomic_write_bytes(log_path, "".join(json.dumps(r) + "\n" for r in rows).encode())
-    total, k = tc.total_steps, tc.steps_per_dispatch
+    keys = tuple(base_key(a.tc) for a in arms)
+    total, k = arms[0].tc.total_steps, arms[0].tc.steps_per_dispatch
     t0 = time.perf_counter()
     compile_s = None
-    row: dict[str, Any] = {}
-    with open(log_path if lead else os.devnull, "a" if start else "w") as log, tqdm(
-            total=total, initial=start, desc=desc, unit="step", disable=not (progress and lead)) as bar:
-        while int(state.step) < total:
+    states = tuple(states)
+    with contextlib.ExitStack() as stack, tqdm(total=total, initial=start, desc=desc, unit="step",
+                                               disable=not (progress and lead)) as bar:
+        logs = [stack.enter_context(open(a.log_path if lead else os.devnull, "a" if start else "w")) for a in arms]
+        while int(states[0].step) < total:
             tc0 = time.perf_counter()
-            prev = state
-            state, metrics = loop(state, key)
+            prev = states
+            states, metrics = loop(states, keys)
             metrics = jax.device_get(metrics)
             if compile_s is None:
                 compile_s = time.perf_counter() - tc0
-            bad = ~(np.isfinite(metrics["total"]) & np.isfinite(metrics["grad_norm"]))
-            if bad.any():
-                _diverged(ckpt, prev, prep.normalizer, config, metrics, bad)
-            step = int(state.step)
-            row = {"step": step, **{m: float(np.mean(v)) for m, v in metrics.items()},
-                   "equiv_err": float(probe(state.ema_params)), "wall_s": time.perf_counter() - t0}
-            log.write(json.dumps(row) + "\n")
-            log.flush()
+            for arm, p, m in zip(arms, prev, metrics):
+                bad = ~(np.isfinite(m["total"]) & np.isfinite(m["grad_norm"]))
+                if bad.any():
+                    _diverged(arm.ckpt, p, prep.normalizer, arm.config, m, bad)
+            step = int(states[0].step)
+            wall = time.perf_counter() - t0
+            for arm, s, m, log in zip(arms, states, metrics, logs):
+                arm.row = {"step": step, **{n: float(np.mean(v)) for n, v in m.items()},
+                           "equiv_err": float(probe(s.ema_params)), "wall_s": wall}
+                log.write(json.dumps(arm.row) + "\n")
+                log.flush()
             bar.update(k)
-            bar.set_postfix(bc=f"{row['bc']:.3f}", sym=f"{row['sym']:.3f}", equiv=f"{row['equiv_err']:.3f}")
+            r = arms[-1].row
+            bar.set_postfix(bc=f"{r['bc']:.3f}", sym=f"{r['sym']:.3f}", equiv=f"{r['equiv_err']:.3f}")
             if checkpoint_every and step % checkpoint_every == 0 and step < total:
-                save_checkpoint(ckpt, state, prep.normalizer, config, max_to_keep=2)
+                for arm, s in zip(arms, states):
+                    save_checkpoint(arm.ckpt, s, prep.normalizer, arm.config, max_to_keep=2)
             if max_wall_s is not None and time.perf_counter() - t0 >= max_wall_s:
                 break
-    if latest_step(ckpt) != int(state.step):
-        save_checkpoint(ckpt, state, prep.normalizer, config, max_to_keep=2)
-    return {"steps": int(state.step), "resumed_from": start, "train_s": time.perf_counter() - t0,
-            "first_dispatch_s_incl_compile": compile_s, "final": row, "checkpoint": str(ckpt),
-            "log": str(log_path), "config": str(out / "config.json")}
+    train_s = time.perf_counter() - t0
+    out = {}
+    for arm, s in zip(arms, states):
+        if latest_step(arm.ckpt) != int(s.step):
+            save_checkpoint(arm.ckpt, s, prep.normalizer, arm.config, max_to_keep=2)
+        out[arm.name] = {"steps": int(s.step), "resumed_from": start, "train_s": train_s,
+                         "first_dispatch_s_incl_compile": compile_s, "final": arm.row,
+                         "checkpoint": str(arm.ckpt), "log": str(arm.log_path),
+                         "config": str(arm.out / "config.json"), "trained_with": [a.name for a in arms]}
+    return out
 
 
 def _diverged(ckpt: Path, prev: TrainState, normalizer: Normalizer, config: dict, metrics: dict,

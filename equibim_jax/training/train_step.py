@@ -46,6 +46,7 @@ __all__ = [
     "sym_ramp",
     "make_train_step",
     "make_train_loop",
+    "make_joint_train_loop",
     "base_key",
     "BoundTrainFn",
 ]
@@ -343,5 +344,43 @@ def make_train_loop(train_config: TrainConfig, dataset: OnDeviceDataset, symmetr
             return step_fn(s, key, data)
 
         return jax.lax.scan(body, state, None, length=k_steps)
+
+    return BoundTrainFn(loop, replicate(dataset, mesh), mesh)
+
+
+def make_joint_train_loop(train_configs: tuple[TrainConfig, ...], dataset: OnDeviceDataset,
+                          symmetries: tuple[Any, ...], num_steps: int | None = None) -> BoundTrainFn:
+    """Several runs on one dataset, K steps each, in one jitted program:
+    ``loop(states, keys) -> (states, metrics)`` with ``states``, ``keys`` and ``metrics``
+    tuples in the order of ``train_configs`` (each metric ``[K]``).
+
+    Each run takes the steps :func:`make_train_loop` would give it (its own config, state,
+    base key and symmetry), up to float rounding; only the program is shared. It compiles
+    once instead of once per run, and XLA overlaps the runs' independent operations
+    (``benchmarks/joint_train.py`` compares it with separate loops). The runs may differ
+    in anything but their length per dispatch.
+
+    Args:
+      train_configs: one config per run.
+      dataset: the on-device data every run samples from.
+      symmetries: one normalised-space ``S`` (or ``None``) per run.
+      num_steps: ``K``; defaults to the first config's ``steps_per_dispatch``.
+    Raises:
+      ValueError: empty or mismatched ``train_configs`` / ``symmetries``.
+    """
+    if not train_configs or len(train_configs) != len(symmetries):
+        raise ValueError(f"need one symmetry per train config, got {len(train_configs)} configs "
+                         f"and {len(symmetries)} symmetries")
+    k_steps = train_configs[0].steps_per_dispatch if num_steps is None else num_steps
+    mesh = train_mesh()
+    step_fns = tuple(build_step_fn(tc, sym, mesh=mesh) for tc, sym in zip(train_configs, symmetries))
+
+    @functools.partial(jax.jit, compiler_options=train_compiler_options())
+    def loop(states, keys, data):
+        def body(ss, _):
+            outs = tuple(f(s, k, data) for f, s, k in zip(step_fns, ss, keys))
+            return tuple(o[0] for o in outs), tuple(o[1] for o in outs)
+
+        return jax.lax.scan(body, tuple(states), None, length=k_steps)
 
     return BoundTrainFn(loop, replicate(dataset, mesh), mesh)
