@@ -43,8 +43,9 @@ def collect(marker: str, extra: list[str], paths: list[str]) -> list[str]:
     for line in res.stdout.splitlines():
         if "::" in line:
             f = line.split("::", 1)[0]
-            if not (ROOT / f).exists():  # ids are relative to pytest's rootdir: the common folder of paths
-                f = next((str(Path(d) / f) for d in paths if (Path(d) / f).exists()), f)
+            if not (ROOT / f).exists():  # ids are relative to pytest's rootdir, a folder above the paths
+                bases = [b for d in paths for b in (Path(d), *Path(d).parents)]
+                f = next((str(b / f) for b in bases if (b / f).is_file()), f)
             if f not in files:
                 files.append(f)
     return files
