@@ -223,6 +223,34 @@ def test_shipped_experiments_parse():
         assert q.quick and all(c.demos <= 2 and c.train.total_steps <= 20 for c in q.cells)
 
 
+def test_merge_previous_keeps_unchanged_cells_only():
+    """A table built over several invocations keeps a previous cell only when this run did
+    not redo it and its config is unchanged; another experiment, size or arm set keeps none."""
+    t1 = load_experiment("table1")
+    cfg = {c.name: runner._cell_config(c) for c in t1.cells}
+    a, b, c = (x.name for x in t1.cells[:3])
+    changed = json.loads(json.dumps(cfg[c]))
+    changed["train"]["total_steps"] += 1
+    prev = {"experiment": "table1", "quick": False, "arms": list(t1.arms),
+            "cells": {a: {"evals": "A"}, b: {"evals": "B"}, c: {"evals": "C"}, "gone/x": {"evals": "G"}},
+            "configs": {a: cfg[a], b: cfg[b], c: changed, "gone/x": cfg[a]}}
+    kept = runner.merge_previous(prev, "table1", False, list(t1.arms), cfg, ran={b})
+    assert list(kept) == [a] and kept[a]["cell"] == {"evals": "A"} and kept[a]["config"] == cfg[a]
+    assert runner.merge_previous(prev, "table1", True, list(t1.arms), cfg, ran=set()) == {}
+    assert runner.merge_previous(prev, "table2", False, list(t1.arms), cfg, ran=set()) == {}
+    assert runner.merge_previous(prev, "table1", False, ["baseline"], cfg, ran=set()) == {}
+
+
+def test_committed_table1_cells_match_the_experiment_file():
+    """The committed Table I results were made with the configs the experiment file gives
+    now, so a new invocation extends that table instead of dropping its cells."""
+    t1 = load_experiment("table1")
+    prev = json.loads((REPO / "docs/results/experiments/table1/results.json").read_text())
+    cfg = {c.name: runner._cell_config(c) for c in t1.cells}
+    kept = runner.merge_previous(prev, "table1", False, list(t1.arms), cfg, ran=set())
+    assert set(kept) == set(prev["cells"]) and len(kept) >= 8
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["table1", "table2", "table3", "ablation"])
 def test_quick_experiment_end_to_end(name, tmp_path):

@@ -47,7 +47,7 @@ import numpy as np
 from equibim_jax._io import atomic_write_json
 from equibim_jax.config import ConfigError, EvalConfig, TaskConfig, config_from_dict, config_to_dict, find_config, load_config
 
-__all__ = ["ARMS", "Cell", "Experiment", "Manifest", "load_experiment", "run_experiment", "estimate",
+__all__ = ["ARMS", "Cell", "Experiment", "Manifest", "load_experiment", "run_experiment", "estimate", "merge_previous",
            "expert_rollout", "random_rollout", "unit_key", "experiment_path", "DEFAULT_OUT"]
 
 DEFAULT_OUT = "results/experiments"
@@ -479,7 +479,10 @@ def run_experiment(exp: Experiment, out_dir: str | Path | None = None, progress:
                    command: str = "") -> dict:
     """Run (or resume) every cell of ``exp``; writes ``OUT/NAME/{results.json, table.md,
     plot.png}`` and returns the results dict. ``out_dir`` defaults to :data:`DEFAULT_OUT`
-    (``results/experiments-quick`` for a quick experiment)."""
+    (``results/experiments-quick`` for a quick experiment). The cells of an existing
+    ``OUT/NAME/results.json`` that this invocation did not run stay in the table when their
+    config is unchanged (:func:`merge_previous`); ``commands`` lists every invocation that
+    contributed."""
     from tqdm.auto import tqdm
 
     from equibim_jax.experiments import tables
@@ -487,21 +490,36 @@ def run_experiment(exp: Experiment, out_dir: str | Path | None = None, progress:
     root = Path(out_dir if out_dir is not None else (DEFAULT_OUT + "-quick" if exp.quick else DEFAULT_OUT))
     root.mkdir(parents=True, exist_ok=True)
     manifest = Manifest(root)
+    out = root / exp.name
+    prev = None
+    if (out / "results.json").exists():
+        try:
+            prev = json.loads((out / "results.json").read_text())
+        except json.JSONDecodeError:
+            raise ConfigError(f"{out / 'results.json'} is not valid JSON (move it away)") from None
     t0 = time.perf_counter()
     cells, envs = {}, {}
     for cell in tqdm(exp.cells, desc=f"experiment {exp.name}", unit="cell", disable=not progress):
         cells[cell.name] = run_cell(cell, exp.arms, root, manifest, progress=progress, envs=envs)
         envs.clear()  # envs are cheap to rebuild and hold device memory
+    configs = {c.name: _cell_config(c) for c in exp.cells}
+    kept = {}
+    if prev is not None:
+        full = load_experiment(exp.source, quick=exp.quick)
+        kept = merge_previous(prev, exp.name, exp.quick, list(exp.arms),
+                              {c.name: _cell_config(c) for c in full.cells}, set(cells))
+    order = [c.name for c in (full.cells if prev is not None else exp.cells)]
+    all_cells = {**{k: v["cell"] for k, v in kept.items()}, **cells}
+    all_cells = {n: all_cells[n] for n in order if n in all_cells}
+    configs = {**{k: v["config"] for k, v in kept.items()}, **configs}
+    commands = [c for c in (prev or {}).get("commands", [(prev or {}).get("command")]) if c] if kept else []
     results = {"experiment": exp.name, "description": exp.description, "quick": exp.quick,
                "arms": list(exp.arms), "view": exp.view, "source": exp.source, "command": command,
-               "wall_time_s": time.perf_counter() - t0, "cells": cells, "paper": exp.paper,
+               "commands": commands + ([command] if command and command not in commands else []),
+               "wall_time_s": time.perf_counter() - t0, "cells": all_cells, "paper": exp.paper,
                "full_size_estimate": exp.full_size_estimate,
-               "configs": {c.name: {"task": config_to_dict(c.task), "policy": config_to_dict(c.policy),
-                                    "demos": c.demos, "seed": c.seed, "train": config_to_dict(c.train),
-                                    "eval": config_to_dict(c.eval), "evals": [list(e) for e in c.evals]}
-                           for c in exp.cells}}
+               "configs": {n: configs[n] for n in all_cells}}
     results["summary"] = tables.summarize(results)
-    out = root / exp.name
     atomic_write_json(out / "results.json", results)
     (out / "table.md").parent.mkdir(parents=True, exist_ok=True)
     from equibim_jax._io import atomic_write_bytes
@@ -509,6 +527,34 @@ def run_experiment(exp: Experiment, out_dir: str | Path | None = None, progress:
     atomic_write_bytes(out / "table.md", tables.markdown(results).encode())
     tables.plot(results, out / "plot.png")
     return results
+
+
+def _cell_config(c: Cell) -> dict:
+    """The JSON form of everything that determines a cell's results."""
+    return json.loads(json.dumps({"task": config_to_dict(c.task), "policy": config_to_dict(c.policy),
+                                  "demos": c.demos, "seed": c.seed, "train": config_to_dict(c.train),
+                                  "eval": config_to_dict(c.eval), "evals": [list(e) for e in c.evals]},
+                                 default=str))
+
+
+def merge_previous(prev: Mapping, name: str, quick: bool, arms: list, configs: Mapping,
+                   ran: set) -> dict:
+    """The cells of a previous ``results.json`` (``prev``) that a new invocation keeps:
+    ``{cell name: {"cell": ..., "config": ...}}``.
+
+    A table can be built over several invocations (``--only`` a few cells at a time, or
+    on another machine whose unit files are gone): a previous cell is kept when this
+    invocation did not run it (``ran``), ``prev`` is the same experiment at the same size
+    with the same arms, and the cell's recorded config equals its config in the current
+    experiment file (``configs``, JSON form); a cell whose config has changed is dropped,
+    never mixed in.
+    """
+    if prev.get("experiment") != name or bool(prev.get("quick")) != bool(quick) or list(prev.get("arms", [])) != list(arms):
+        return {}
+    old_cfg = prev.get("configs", {})
+    return {n: {"cell": c, "config": old_cfg[n]} for n, c in prev.get("cells", {}).items()
+            if n not in ran and n in configs and n in old_cfg
+            and json.loads(json.dumps(old_cfg[n], default=str)) == configs[n]}
 
 
 def estimate(full: Experiment, manifest: Manifest) -> dict:
