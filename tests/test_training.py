@@ -566,3 +566,19 @@ def test_train_compiler_options(monkeypatch, setup):
     _, plain = make_train_loop(cfg, setup["dataset"], setup["sym"])(state, base_key(cfg))
     for name in ("bc", "sym", "total"):
         np.testing.assert_allclose(np.asarray(tuned[name]), np.asarray(plain[name]), rtol=1e-4, atol=1e-6)
+
+
+def test_constant_action_warning_names_the_channels():
+    """A noise-predicting diffusion policy on actions with constant channels is warned
+    about, naming them; a clean-sample predictor, or actions with no constant channel, is not."""
+    from equibim_jax.training.run import constant_action_warning
+
+    rng = np.random.default_rng(0)
+    acts = rng.uniform(-1, 1, (5, 30, 6)).astype(np.float32)
+    eps_cfg = DP3Config(prediction="epsilon")
+    assert constant_action_warning(eps_cfg, acts) is None
+    acts[..., 2] = 1.0
+    acts[..., 4] = 1e-5 * rng.standard_normal((5, 30))  # float jitter around a constant
+    msg = constant_action_warning(eps_cfg, acts)
+    assert msg is not None and "[2, 4]" in msg and "prediction='sample'" in msg
+    assert constant_action_warning(DP3Config(prediction="sample"), acts) is None

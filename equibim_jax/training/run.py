@@ -50,7 +50,7 @@ from equibim_jax.training.train_step import (
     make_joint_train_loop,
 )
 
-__all__ = ["TrainingDiverged", "Run", "prepare_data", "train", "train_together", "load_run", "read_log"]
+__all__ = ["TrainingDiverged", "Run", "prepare_data", "constant_action_warning", "train", "train_together", "load_run", "read_log"]
 
 
 class TrainingDiverged(RuntimeError):
@@ -81,13 +81,39 @@ class Data(NamedTuple):
     dataset: OnDeviceDataset
 
 
+def constant_action_warning(policy_config: PolicyConfig, actions: np.ndarray, tol: float = 2e-4) -> str | None:
+    """The warning :func:`prepare_data` gives when a noise-predicting diffusion policy
+    (``prediction="epsilon"``) is trained on actions ``[..., A]`` with channels whose range
+    is below ``tol`` (the normaliser leaves them unscaled, near 0), else ``None``.
+
+    Such a policy learns constant channels poorly: their noise target is the noisy input
+    rescaled, with no signal to fit, and the DDIM samples come out noisy in exactly those
+    channels. The end-effector action's rotation entries that a task never changes are the
+    common case. A clean-sample predictor (``prediction="sample"``) fits them at once.
+    """
+    if getattr(policy_config, "prediction", None) != "epsilon":
+        return None
+    flat = np.asarray(actions).reshape(-1, np.shape(actions)[-1])
+    const = np.flatnonzero(flat.max(0) - flat.min(0) < tol)
+    if const.size == 0:
+        return None
+    return (f"action channels {const.tolist()} are constant in the data (range < {tol:g}); a "
+            "noise-predicting diffusion policy (prediction='epsilon') fits constant channels "
+            "poorly and samples noise in them. Use prediction='sample' for these actions.")
+
+
 def prepare_data(demos: Demos, env: Env, policy_config: PolicyConfig,
                  normalizer: Normalizer | None = None) -> Data:
     """Frames of the fields the policy reads, the mirror-consistent normaliser (fitted on
     the frames and their mirror images unless given), ``S`` in normalised space, the
-    policy config with the data's dims, and the on-device windows."""
+    policy config with the data's dims, and the on-device windows. Warns
+    (:func:`constant_action_warning`) when a noise-predicting policy meets constant action
+    channels."""
     fields = tuple(policy_config.obs_keys)
     frames, ends = frames_from_demos(demos, fields)
+    msg = constant_action_warning(policy_config, frames["action"])
+    if msg is not None:
+        warnings.warn(msg, stacklevel=2)
     sym_raw = env.symmetry_ops(fields, policy_config.action_key)
     if policy_config.action_key != "action":
         frames[policy_config.action_key] = frames.pop("action")
