@@ -481,8 +481,8 @@ def run_experiment(exp: Experiment, out_dir: str | Path | None = None, progress:
     plot.png}`` and returns the results dict. ``out_dir`` defaults to :data:`DEFAULT_OUT`
     (``results/experiments-quick`` for a quick experiment). The cells of an existing
     ``OUT/NAME/results.json`` that this invocation did not run stay in the table when their
-    config is unchanged (:func:`merge_previous`); ``commands`` lists every invocation that
-    contributed."""
+    config is unchanged (:func:`merge_previous`); each cell records the ``command`` that ran
+    it, and ``commands`` lists those of the cells in the table."""
     from tqdm.auto import tqdm
 
     from equibim_jax.experiments import tables
@@ -509,13 +509,17 @@ def run_experiment(exp: Experiment, out_dir: str | Path | None = None, progress:
         kept = merge_previous(prev, exp.name, exp.quick, list(exp.arms),
                               {c.name: _cell_config(c) for c in full.cells}, set(cells))
     order = [c.name for c in (full.cells if prev is not None else exp.cells)]
+    for c in cells.values():
+        c["command"] = command
+    for v in kept.values():  # cells from before per-cell commands were recorded
+        v["cell"].setdefault("command", prev.get("command", ""))
     all_cells = {**{k: v["cell"] for k, v in kept.items()}, **cells}
     all_cells = {n: all_cells[n] for n in order if n in all_cells}
     configs = {**{k: v["config"] for k, v in kept.items()}, **configs}
-    commands = [c for c in (prev or {}).get("commands", [(prev or {}).get("command")]) if c] if kept else []
+    commands = list(dict.fromkeys(c["command"] for c in all_cells.values() if c.get("command")))
     results = {"experiment": exp.name, "description": exp.description, "quick": exp.quick,
                "arms": list(exp.arms), "view": exp.view, "source": exp.source, "command": command,
-               "commands": commands + ([command] if command and command not in commands else []),
+               "commands": commands,
                "wall_time_s": time.perf_counter() - t0, "cells": all_cells, "paper": exp.paper,
                "full_size_estimate": exp.full_size_estimate,
                "configs": {n: configs[n] for n in all_cells}}
