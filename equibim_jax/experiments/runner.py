@@ -491,17 +491,22 @@ def run_experiment(exp: Experiment, out_dir: str | Path | None = None, progress:
     root.mkdir(parents=True, exist_ok=True)
     manifest = Manifest(root)
     out = root / exp.name
-    prev = None
-    if (out / "results.json").exists():
+
+    def previous():  # read after the cells ran: the table as it is now, not as it was at the start
+        if not (out / "results.json").exists():
+            return None
         try:
-            prev = json.loads((out / "results.json").read_text())
+            return json.loads((out / "results.json").read_text())
         except json.JSONDecodeError:
             raise ConfigError(f"{out / 'results.json'} is not valid JSON (move it away)") from None
+
+    previous()  # a broken results.json stops the run before any work
     t0 = time.perf_counter()
     cells, envs = {}, {}
     for cell in tqdm(exp.cells, desc=f"experiment {exp.name}", unit="cell", disable=not progress):
         cells[cell.name] = run_cell(cell, exp.arms, root, manifest, progress=progress, envs=envs)
         envs.clear()  # envs are cheap to rebuild and hold device memory
+    prev = previous()
     configs = {c.name: _cell_config(c) for c in exp.cells}
     kept = {}
     if prev is not None:
