@@ -44,6 +44,7 @@ def tiny_demo(tmp_path_factory):
     return out, res
 
 
+@pytest.mark.slow  # builds the tiny demo (about 4 min of compiling on a cold cache); the slow suite runs it
 def test_demo_outputs(tiny_demo):
     out, res = tiny_demo
     saved = json.loads((out / "demo.json").read_text())
@@ -90,6 +91,7 @@ def test_demo_outputs(tiny_demo):
                                out_dir=str(out))
 
 
+@pytest.mark.slow  # builds the tiny demo (about 4 min of compiling on a cold cache); the slow suite runs it
 def test_sampled_action_equivariance_is_zero_for_an_equivariant_policy(tiny_demo):
     """``open_loop_errors``'s ``equivariance`` compares pi(O, z) with S pi(S O, S_a z):
     exactly 0 for zero weights (eps = 0, so DDIM only clips and scales the noise, which
@@ -109,6 +111,7 @@ def test_sampled_action_equivariance_is_zero_for_an_equivariant_policy(tiny_demo
     assert ol["trained"]["equivariance"]["arm_rad"] > 1e-3
 
 
+@pytest.mark.slow  # builds the tiny demo (about 4 min of compiling on a cold cache); the slow suite runs it
 def test_demo_dataset_records_its_task_and_is_rebuildable(tiny_demo):
     out, _ = tiny_demo
     demos = load(out / "demo" / "demos.zarr")
@@ -164,6 +167,7 @@ def test_cli_train_resume_is_exact_and_eval(tiny_demo, tmp_path, capsys):
     assert res["trained"]["episodes"] == 2 and res["mirrored"]["episodes"] == 2
 
 
+@pytest.mark.slow  # builds the tiny demo (about 4 min of compiling on a cold cache); the slow suite runs it
 def test_cli_generate_refuses_to_overwrite(tiny_demo, capsys):
     out, _ = tiny_demo
     before = sorted(p.name for p in (out / "demo" / "demos.zarr").iterdir())
