@@ -516,8 +516,9 @@ def run_experiment(exp: Experiment, out_dir: str | Path | None = None, progress:
     order = [c.name for c in (full.cells if prev is not None else exp.cells)]
     for c in cells.values():
         c["command"] = command
-    for v in kept.values():  # cells from before per-cell commands were recorded
-        v["cell"].setdefault("command", prev.get("command", ""))
+    legacy = prev is not None and "commands" not in prev  # one command made the whole old table
+    for v in kept.values():  # cells from before per-cell commands were recorded; else unknown
+        v["cell"].setdefault("command", prev.get("command", "") if legacy else "")
     all_cells = {**{k: v["cell"] for k, v in kept.items()}, **cells}
     all_cells = {n: all_cells[n] for n in order if n in all_cells}
     configs = {**{k: v["config"] for k, v in kept.items()}, **configs}
