@@ -241,6 +241,28 @@ def test_merge_previous_keeps_unchanged_cells_only():
     assert runner.merge_previous(prev, "table1", False, ["baseline"], cfg, ran=set()) == {}
 
 
+def test_table_grows_over_invocations(tmp_path, monkeypatch):
+    """Two --only invocations into one folder give one table with both cells, each with
+    the command that ran it; the units themselves are stubbed (no simulation)."""
+    def fake_cell(cell, arms, root, manifest, progress=True, envs=None):
+        s = {"success": 0.5, "successes": 1, "episodes": 2, "ci95": [0.1, 0.9], "per_episode": [1, 0]}
+        t = {"p_b_better": 0.5, "b_only": 0, "a_only": 0}
+        return {"task": cell.task.name, "preset": cell.preset, "options": cell.task.options,
+                "evals": {"train_dist": {a: {"trained": s, "mirrored": s} for a in arms}},
+                "sign_tests": {"train_dist": {a: {"trained": t, "mirrored": t} for a in arms if a != "baseline"}},
+                "train": {}, "units": {}}
+
+    monkeypatch.setattr(runner, "run_cell", fake_cell)
+    names = [c.name for c in load_experiment("table1").cells]
+    run_experiment(load_experiment("table1", only=(names[1],)), tmp_path, progress=False, command="first")
+    res = run_experiment(load_experiment("table1", only=(names[0],)), tmp_path, progress=False, command="second")
+    assert list(res["cells"]) == [names[0], names[1]]  # in the experiment file's order
+    assert res["cells"][names[1]]["command"] == "first" and res["cells"][names[0]]["command"] == "second"
+    assert res["commands"] == ["second", "first"] and set(res["configs"]) == {names[0], names[1]}
+    on_disk = json.loads((tmp_path / "table1" / "results.json").read_text())
+    assert set(on_disk["cells"]) == {names[0], names[1]}
+
+
 def test_committed_table1_cells_match_the_experiment_file():
     """The committed Table I results were made with the configs the experiment file gives
     now, so a new invocation extends that table instead of dropping its cells."""
