@@ -54,8 +54,7 @@ def run(task: str, steps: int = 1500, demos: int = 50, windows: int = 64, seed: 
     try:
         gen_env = TaskConfig(task, {**opts, "action": "joint"}).make_env()
         data, _ = generate_dataset(gen_env, tmp / "demos.zarr", demos, seed=seed, progress=progress)
-        ee = data.in_action_space("ee").action.reshape(-1, data.action_ee.shape[-1])
-        out["constant_ee_channels"] = np.flatnonzero(ee.max(0) - ee.min(0) < 2e-4).tolist()
+        out["constant_ee_channels"] = trun.constant_channels(data.action_ee).tolist()
         for space, pred in VARIANTS:
             name = f"{space}/{pred}"
             d = data.in_action_space(space)

@@ -81,6 +81,12 @@ class Data(NamedTuple):
     dataset: OnDeviceDataset
 
 
+def constant_channels(x: np.ndarray, tol: float = 2e-4) -> np.ndarray:
+    """Indices of the trailing-axis channels of ``x [..., D]`` whose range is below ``tol``."""
+    flat = np.asarray(x).reshape(-1, np.shape(x)[-1])
+    return np.flatnonzero(flat.max(0) - flat.min(0) < tol)
+
+
 def constant_action_warning(policy_config: PolicyConfig, actions: np.ndarray, tol: float = 2e-4) -> str | None:
     """The warning :func:`prepare_data` gives when a noise-predicting diffusion policy
     (``prediction="epsilon"``) is trained on actions ``[..., A]`` with channels whose range
@@ -93,8 +99,7 @@ def constant_action_warning(policy_config: PolicyConfig, actions: np.ndarray, to
     """
     if getattr(policy_config, "prediction", None) != "epsilon":
         return None
-    flat = np.asarray(actions).reshape(-1, np.shape(actions)[-1])
-    const = np.flatnonzero(flat.max(0) - flat.min(0) < tol)
+    const = constant_channels(actions, tol)
     if const.size == 0:
         return None
     return (f"action channels {const.tolist()} are constant in the data (range < {tol:g}); a "
