@@ -15,6 +15,13 @@ def test_bad_sizes_are_refused(tmp_path):
     assert not (tmp_path / "x.json").exists()
 
 
+def test_unknown_preset_is_refused_by_name():
+    with pytest.raises(ValueError, match="dp_image_joint"):
+        prediction_check.run("click_bell", preset="dp_image_joint")
+    with pytest.raises(SystemExit):
+        prediction_check.main(["--preset", "nope"])
+
+
 @pytest.mark.slow  # generates demos and compiles three train steps and samplers
 def test_tiny_run_reports_every_variant(tmp_path):
     out = tmp_path / "p.json"

@@ -1,13 +1,14 @@
 """Noise or clean-sample prediction for a diffusion policy on end-effector actions.
 
-Trains the ``table1`` DP3 point cloud + EE preset (baseline arm: plain BC) on one task's
-demos in three variants and reports how well each fits its own training windows:
+Trains a ``table1`` end-effector preset (``dp3_pc_ee`` by default, or ``dp_image_ee``;
+baseline arm: plain BC) on one task's demos in three variants and reports how well each
+fits its own training windows:
 
-* ``joint/epsilon``: joint actions, noise prediction (the DP3 point cloud + joint row's setting);
+* ``joint/epsilon``: joint actions, noise prediction (the joint rows' setting);
 * ``ee/epsilon``: end-effector actions, noise prediction;
 * ``ee/sample``: end-effector actions, clean-sample prediction (what the EE row uses).
 
-All three read the same observations (``ee`` + point cloud). Per variant: the BC loss per
+All three read the preset's observations (``ee`` + point cloud, or ``ee`` + image). Per variant: the BC loss per
 logged dispatch (not comparable between the two prediction types: different targets), and
 the open-loop error of DDIM samples on ``windows`` training windows per action channel, in
 normalised units (comparable across variants), plus the action channels that are constant
@@ -15,6 +16,8 @@ in the data. Run::
 
     python -m equibim_jax.experiments.prediction_check --task beat_block_hammer \\
         --steps 1500 --out docs/results/ee_prediction.json
+    python -m equibim_jax.experiments.prediction_check --preset dp_image_ee \\
+        --task beat_block_hammer --steps 1500 --out docs/results/ee_prediction_dp_image.json
 """
 
 from __future__ import annotations
@@ -33,23 +36,30 @@ import numpy as np
 from equibim_jax._io import atomic_write_json
 
 VARIANTS = (("joint", "epsilon"), ("ee", "epsilon"), ("ee", "sample"))
+PRESETS = ("dp3_pc_ee", "dp_image_ee")
 
 
 def run(task: str, steps: int = 1500, demos: int = 50, windows: int = 64, seed: int = 0,
-        progress: bool = True) -> dict:
+        progress: bool = True, preset: str = "dp3_pc_ee") -> dict:
     """Generate ``demos`` expert demos of ``task`` (joint env; EE actions recorded too),
-    train each variant for ``steps`` steps and measure it. Returns the JSON-able report."""
+    train each variant of ``table1``'s ``preset`` for ``steps`` steps and measure it.
+    Returns the JSON-able report."""
+    if preset not in PRESETS:
+        raise ValueError(f"prediction_check: unknown preset {preset!r}; valid: {', '.join(PRESETS)}")
     from equibim_jax.config import TaskConfig
     from equibim_jax.data.generate import generate_dataset
     from equibim_jax.data.windows import frames_from_demos, make_dataset, sample_batch
     from equibim_jax.experiments.runner import load_experiment
     from equibim_jax.training import run as trun
 
-    cell = load_experiment("table1", only=(f"{task}/dp3_pc_ee",)).cells[0]
+    cell = load_experiment("table1", only=(f"{task}/{preset}",)).cells[0]
     opts = {k: v for k, v in cell.task.options.items() if k != "action"}
     tmp = Path(tempfile.mkdtemp(prefix="prediction_check_"))
-    out = {"task": task, "steps": steps, "demos": demos, "windows": windows, "seed": seed,
-           "command": f"python -m equibim_jax.experiments.prediction_check --task {task} --steps {steps}",
+    cmd = f"python -m equibim_jax.experiments.prediction_check --task {task} --steps {steps}"
+    if preset != "dp3_pc_ee":
+        cmd += f" --preset {preset}"
+    out = {"task": task, "preset": preset, "steps": steps, "demos": demos, "windows": windows,
+           "seed": seed, "command": cmd,
            "variants": {}}
     try:
         gen_env = TaskConfig(task, {**opts, "action": "joint"}).make_env()
@@ -87,6 +97,8 @@ def run(task: str, steps: int = 1500, demos: int = 50, windows: int = 64, seed: 
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--task", default="beat_block_hammer")
+    p.add_argument("--preset", default="dp3_pc_ee", choices=PRESETS,
+                   help="table1's end-effector policy preset to check")
     p.add_argument("--steps", type=int, default=1500)
     p.add_argument("--demos", type=int, default=50)
     p.add_argument("--out", default="results/ee_prediction.json")
@@ -94,7 +106,7 @@ def main(argv: list[str] | None = None) -> dict:
     a = p.parse_args(argv)
     if a.steps < 1 or a.demos < 1:
         p.error("--steps and --demos must be positive")
-    res = run(a.task, a.steps, a.demos, progress=not a.no_progress)
+    res = run(a.task, a.steps, a.demos, progress=not a.no_progress, preset=a.preset)
     atomic_write_json(Path(a.out), res)
     for name, v in res["variants"].items():
         print(f"{name:<14} final bc {v['bc'][-1][1]:.4f}  open-loop |err| (normalised) mean "
