@@ -37,6 +37,14 @@ def test_wilson_contains_point_estimate_and_narrows_with_n():
     assert widths[0] > widths[1] > widths[2]
 
 
+@pytest.mark.parametrize("n", [1, 7, 10, 32, 100, 1000])
+def test_wilson_ends_bracket_the_rate_exactly_at_all_or_none(n):
+    # 100/100 once gave hi = 0.9999999999999999 < 1.0 and a plot's error bar went negative.
+    for k in (0, n):
+        lo, hi = wilson_interval(k, n)
+        assert 0.0 <= lo <= k / n <= hi <= 1.0
+
+
 def test_wilson_z_changes_width():
     lo1, hi1 = wilson_interval(5, 10, z=1.0)
     lo2, hi2 = wilson_interval(5, 10, z=2.576)

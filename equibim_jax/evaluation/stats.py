@@ -45,8 +45,9 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
     denom = 1.0 + z2 / n
     center = (p + z2 / (2 * n)) / denom
     half = (z / denom) * math.sqrt(p * (1.0 - p) / n + z2 / (4 * n * n))
-    # Rounding can push the ends a hair past [0, 1] at p = 0 or p = 1.
-    return max(0.0, center - half), min(1.0, center + half)
+    # Rounding can push the ends a hair past [0, 1] or past p itself at p = 0 or p = 1
+    # (100/100 gave hi = 0.9999999999999999 < p, a negative error bar in a plot).
+    return max(0.0, min(center - half, p)), min(1.0, max(center + half, p))
 
 
 def paired_sign_test(a, b) -> dict:

@@ -131,7 +131,9 @@ def plot(results: dict, path: str | Path) -> None:
         rate = np.array([r[3][arm]["success"] for r in rows])
         ci = np.array([r[3][arm]["ci95"] for r in rows]).reshape(-1, 2)
         y = np.arange(len(rows)) + (j - (len(arms) - 1) / 2) * h
-        ax.barh(y, rate, h, xerr=[rate - ci[:, 0], ci[:, 1] - rate] if len(rows) else None, capsize=2,
+        # Clipped at 0: intervals stored by older versions could end a rounding error inside the rate.
+        err = np.clip([rate - ci[:, 0], ci[:, 1] - rate], 0.0, None) if len(rows) else None
+        ax.barh(y, rate, h, xerr=err, capsize=2,
                 color="#888888" if arm == "baseline" else colours(j), label=arm)
     ax.set_yticks(np.arange(len(rows)), [f"{c} | {lab} | {s}" for c, lab, s, _ in rows], fontsize=6)
     ax.invert_yaxis()
