@@ -8,11 +8,11 @@ fits its own training windows:
 * ``ee/epsilon``: end-effector actions, noise prediction;
 * ``ee/sample``: end-effector actions, clean-sample prediction (what the EE row uses).
 
-All three read the preset's observations (``ee`` + point cloud, or ``ee`` + image). Per variant: the BC loss per
-logged dispatch (not comparable between the two prediction types: different targets), and
-the open-loop error of DDIM samples on ``windows`` training windows per action channel, in
-normalised units (comparable across variants), plus the action channels that are constant
-in the data. Run::
+All three read the preset's observations (``ee`` + point cloud, or ``ee`` + image). Per
+variant: the BC loss per logged dispatch (not comparable between the two prediction types:
+different targets), and the open-loop error of DDIM samples on ``windows`` training
+windows per action channel, in normalised units (comparable across variants), plus the
+action channels that are constant in the data. Run::
 
     python -m equibim_jax.experiments.prediction_check --task beat_block_hammer \\
         --steps 1500 --out docs/results/ee_prediction.json
