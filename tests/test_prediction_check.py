@@ -22,13 +22,13 @@ def test_unknown_preset_is_refused_by_name():
         prediction_check.main(["--preset", "nope"])
 
 
-@pytest.mark.slow  # generates demos and compiles three train steps and samplers
+@pytest.mark.slow  # generates demos and compiles four train steps and samplers
 def test_tiny_run_reports_every_variant(tmp_path):
     out = tmp_path / "p.json"
     prediction_check.main(["--task", "click_bell", "--steps", "4", "--demos", "2", "--out", str(out),
                            "--no-progress"])
     res = json.loads(out.read_text())
-    assert set(res["variants"]) == {"joint/epsilon", "ee/epsilon", "ee/sample"}
+    assert set(res["variants"]) == {"joint/epsilon", "joint/sample", "ee/epsilon", "ee/sample"}
     for name, v in res["variants"].items():
         n_act = 14 if name.startswith("joint") else 20
         assert len(v["open_loop_abs_err_normalized"]) == n_act

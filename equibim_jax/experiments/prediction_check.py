@@ -1,14 +1,15 @@
 """Noise or clean-sample prediction for a diffusion policy on end-effector actions.
 
 Trains a ``table1`` end-effector preset (``dp3_pc_ee`` by default, or ``dp_image_ee``;
-baseline arm: plain BC) on one task's demos in three variants and reports how well each
+baseline arm: plain BC) on one task's demos in four variants and reports how well each
 fits its own training windows:
 
 * ``joint/epsilon``: joint actions, noise prediction (the joint rows' setting);
+* ``joint/sample``: joint actions, clean-sample prediction;
 * ``ee/epsilon``: end-effector actions, noise prediction;
-* ``ee/sample``: end-effector actions, clean-sample prediction (what the EE row uses).
+* ``ee/sample``: end-effector actions, clean-sample prediction (what the EE rows use).
 
-All three read the preset's observations (``ee`` + point cloud, or ``ee`` + image). Per
+The two joint variants separate the prediction type from the action space. All four read the preset's observations (``ee`` + point cloud, or ``ee`` + image). Per
 variant: the BC loss per logged dispatch (not comparable between the two prediction types:
 different targets), and the open-loop error of DDIM samples on ``windows`` training
 windows per action channel, in normalised units (comparable across variants), plus the
@@ -35,7 +36,7 @@ import numpy as np
 
 from equibim_jax._io import atomic_write_json
 
-VARIANTS = (("joint", "epsilon"), ("ee", "epsilon"), ("ee", "sample"))
+VARIANTS = (("joint", "epsilon"), ("joint", "sample"), ("ee", "epsilon"), ("ee", "sample"))
 PRESETS = ("dp3_pc_ee", "dp_image_ee")
 
 
