@@ -4,13 +4,13 @@ Trains a ``table1`` end-effector preset (``dp3_pc_ee`` by default, or ``dp_image
 baseline arm: plain BC) on one task's demos in four variants and reports how well each
 fits its own training windows:
 
-* ``joint/epsilon``: joint actions, noise prediction (the joint rows' setting);
-* ``joint/sample``: joint actions, clean-sample prediction;
+* ``joint/epsilon``: joint actions, noise prediction (the DP3 joint row's setting);
+* ``joint/sample``: joint actions, clean-sample prediction (the DP image joint row's);
 * ``ee/epsilon``: end-effector actions, noise prediction;
-* ``ee/sample``: end-effector actions, clean-sample prediction (what the EE rows use).
+* ``ee/sample``: end-effector actions, clean-sample prediction (what both EE rows use).
 
-The two joint variants separate the prediction type from the action space. All four read the preset's observations (``ee`` + point cloud, or ``ee`` + image). Per
-variant: the BC loss per logged dispatch (not comparable between the two prediction types:
+The two joint variants separate the prediction type from the action space. All four
+read the preset's observations (``ee`` + point cloud, or ``ee`` + image). Per variant: the BC loss per logged dispatch (not comparable between the two prediction types:
 different targets), and the open-loop error of DDIM samples on ``windows`` training
 windows per action channel, in normalised units (comparable across variants), plus the
 action channels that are constant in the data. Run::
