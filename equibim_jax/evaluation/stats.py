@@ -45,8 +45,8 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
     denom = 1.0 + z2 / n
     center = (p + z2 / (2 * n)) / denom
     half = (z / denom) * math.sqrt(p * (1.0 - p) / n + z2 / (4 * n * n))
-    # Rounding can push the ends a hair past [0, 1] or past p itself at p = 0 or p = 1
-    # (100/100 gave hi = 0.9999999999999999 < p, a negative error bar in a plot).
+    # Float rounding can put an end a hair outside [0, 1] or on the wrong side of p at
+    # p = 0 or p = 1; clamp so the interval always contains p (no negative error bars).
     return max(0.0, min(center - half, p)), min(1.0, max(center + half, p))
 
 
