@@ -164,3 +164,29 @@ def test_write_video_gif_and_mp4_and_labels(tmp_path):
         write_video(pair, tmp_path / "v.avi")
     with pytest.raises(ValueError, match="uint8"):
         write_video(pair.astype(np.float32), tmp_path / "v.gif")
+
+
+@pytest.mark.slow  # trains a toy run in end-effector actions and generates expert demos
+def test_heldout_equivariance_of_an_ee_action_run(toy_run, tmp_path):
+    """The experts emit joint actions: an EE-action run's held-out demos come from the
+    env's joint-action twin, read in the end-effector space (as the experiment runner
+    does), instead of feeding joint actions to the EE env."""
+    from equibim_jax.evaluation.evaluate import heldout_equivariance
+
+    joint_env, _, _ = toy_run
+    env = eb.make_env("toy_close_gripper", side="left", action="ee")
+    assert env.config.action == "ee" and joint_env.config.action == "joint"
+    q0 = np.asarray(jax.jit(joint_env.reset)(jax.random.key(0)).obs["qpos"])
+    rng = np.random.default_rng(1)
+    qpos = (q0 + rng.normal(0, 0.05, (4, 12, 14))).astype(np.float32)
+    act_ee = np.asarray(jax.jit(jax.vmap(jax.vmap(joint_env.ee_action_from_joint)))(qpos))
+    demos = Demos(obs={"qpos": qpos}, action=act_ee, length=np.full(4, 12, np.int32),
+                  success=np.ones(4, bool), meta={"task": env.task, "task_options": dict(env.task_options)})
+    tc = TrainConfig(batch_size=8, total_steps=10, steps_per_dispatch=10, sym_weight=1.0, sym_norm="mse")
+    train(demos, tmp_path / "run", LinearConfig(obs_horizon=1, pred_horizon=4, action_horizon=4), tc,
+          env=env, progress=False)
+    run = load_run(tmp_path / "run")
+    assert run.policy.config.action_dim == act_ee.shape[-1] != 14
+    eq = heldout_equivariance(env, run.policy, run.normalizer, run.state.ema_params, jax.random.key(3), 2, 8)
+    assert eq["demos"] == 2 and eq["windows"] == 8 and np.isfinite(eq["relative"])
+    assert np.isfinite(eq["demos_error"]["arm_rad"]) and np.isfinite(eq["equivariance"]["arm_rad"])

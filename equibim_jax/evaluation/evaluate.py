@@ -97,7 +97,9 @@ def heldout_equivariance(env: Env, policy: Policy, normalizer: Normalizer, param
     """Equivariance error of a policy on windows of fresh expert demos (held out: their
     starts are drawn from ``key``, which training's demos did not use).
 
-    Generates ``n_demos`` successful expert episodes in ``env`` (in memory), then measures
+    Generates ``n_demos`` successful expert episodes in ``env`` (in memory; for an
+    end-effector-action env, in its joint-action twin, with the demos' actions read in the
+    end-effector space), then measures
     on ``n_windows`` random windows of them (and their mirror images):
     ``"relative"``, what training logs as ``equiv_err`` (the relative error of what
     ``L_sym`` compares, ``training.losses.equivariance_error``: 0 for an exactly
@@ -118,7 +120,17 @@ def heldout_equivariance(env: Env, policy: Policy, normalizer: Normalizer, param
     if n_demos < 1 or n_windows < 1:
         raise ValueError(f"n_demos and n_windows must be >= 1, got {n_demos}, {n_windows}")
     k_demo, k_win = jax.random.split(key)
-    demos, _ = generate_demos(env, k_demo, int(n_demos), chunk=min(int(n_demos), 32), progress=False)
+    gen_env = env
+    if env.config.action == "ee":
+        # The scripted experts emit joint actions: generate in the joint-action twin of the
+        # env (same task and options) and read the demos' end-effector actions, as the
+        # experiment runner does for its EE cells.
+        from equibim_jax.tasks import make_env
+
+        gen_env = make_env(env.task, **{**dict(env.task_options), "action": "joint"})
+    demos, _ = generate_demos(gen_env, k_demo, int(n_demos), chunk=min(int(n_demos), 32), progress=False)
+    if gen_env is not env:
+        demos = demos.in_action_space("ee")
     prep = prepare_data(demos, env, policy.config, normalizer)
     batch = sample_batch(prep.dataset, k_win, int(n_windows))
     rel = float(jax.jit(lambda p: equivariance_error(policy, p, batch, jax.random.fold_in(k_win, 1),
