@@ -232,9 +232,13 @@ class Eval:
                   + ", ".join(f"t={t}: {g:.4f}" for t, g in res["gap_median_at"].items()))
         if "equivariance" in res:
             eq = res["equivariance"]
+            from equibim_jax.evaluation.open_loop import describe_errors
+
             print(f"equivariance on {eq['windows']} windows of {eq['demos']} fresh expert demos: relative "
-                  f"{eq['relative']:.4f}; sampled actions |S pi(S O, S z) - pi(O, z)|: arm "
-                  f"{eq['equivariance']['arm_rad']:.4f} rad, gripper {eq['equivariance']['gripper']:.3f}")
+                  f"{eq['relative']:.4f}; sampled actions |S pi(S O, S z) - pi(O, z)|: "
+                  f"{describe_errors(eq['equivariance'])}; action error on the demos: "
+                  f"{describe_errors(eq['demos_error'])}, on their mirror images: "
+                  f"{describe_errors(eq['mirrored_demos_error'])}")
         for v in res.get("videos", []):
             print(f"video of episode {v['episode']}: {v['path']} ({v['frames']} frames, "
                   f"{v['width']}x{v['height']})")
@@ -260,7 +264,7 @@ class Equivariance:
     def run(self, command: str) -> None:
         from equibim_jax._io import atomic_write_json
         from equibim_jax.data.dataset import load
-        from equibim_jax.evaluation.open_loop import open_loop_errors
+        from equibim_jax.evaluation.open_loop import describe_errors, open_loop_errors
         from equibim_jax.training.run import load_run
 
         demos = load(self.data)
@@ -271,9 +275,9 @@ class Equivariance:
                                   run.make_env(), n_windows=self.windows, seed=self.seed)["p"]
             res[run_dir] = ol
             eq = ol["equivariance"]
-            print(f"{run_dir}: sampled actions |S pi(S O, S z) - pi(O, z)|: arm {eq['arm_rad']:.4f} rad, "
-                  f"gripper {eq['gripper']:.3f}; action error on demos {ol['demos']['arm_rad']:.4f} rad, "
-                  f"on mirrored demos {ol['mirrored_demos']['arm_rad']:.4f} rad")
+            print(f"{run_dir}: sampled actions |S pi(S O, S z) - pi(O, z)|: {describe_errors(eq)}; action "
+                  f"error on demos {describe_errors(ol['demos'])}, on mirrored demos "
+                  f"{describe_errors(ol['mirrored_demos'])}")
             print("  gap per action dim (normalised rms): "
                   + " ".join(f"{x:.3f}" for x in eq["per_dim_normalized_rms"]))
         if self.out:

@@ -189,4 +189,49 @@ def test_heldout_equivariance_of_an_ee_action_run(toy_run, tmp_path):
     assert run.policy.config.action_dim == act_ee.shape[-1] != 14
     eq = heldout_equivariance(env, run.policy, run.normalizer, run.state.ema_params, jax.random.key(3), 2, 8)
     assert eq["demos"] == 2 and eq["windows"] == 8 and np.isfinite(eq["relative"])
-    assert np.isfinite(eq["demos_error"]["arm_rad"]) and np.isfinite(eq["equivariance"]["arm_rad"])
+    assert set(eq["demos_error"]) == set(eq["equivariance"]) - {"per_dim_normalized_rms"} \
+        == {"position_m", "rotation", "gripper"}  # the EE layout's groups, not joint radians
+    assert all(np.isfinite(v) for v in eq["demos_error"].values())
+
+
+def test_state_from_qpos_matches_the_observation():
+    """The state inputs rebuilt from a recorded qpos equal what the env observes."""
+    from equibim_jax.evaluation.input_range import state_from_qpos
+
+    register_task(TOY_TASK)
+    env = eb.make_env("toy_close_gripper", side="left", obs=("qpos", "ee"))
+    s = jax.jit(env.reset)(jax.random.key(2))
+    for field in ("qpos", "ee"):
+        got = state_from_qpos(env, field, s.data.qpos[None, None])
+        assert got.shape == (1, 1) + s.obs[field].shape
+        np.testing.assert_allclose(got[0, 0], s.obs[field], atol=1e-5)
+    with pytest.raises(ValueError, match="state field must be one of"):
+        state_from_qpos(env, "image", s.data.qpos)
+
+
+def test_closed_loop_input_range(toy_run):
+    from equibim_jax.evaluation.input_range import closed_loop_input_range
+
+    env, _, run = toy_run
+    rep = closed_loop_input_range(env, run.policy, run.normalizer, run.state.ema_params, jax.random.key(0), 3)
+    assert rep["field"] == "qpos" and len(rep["success"]) == 3 and len(rep["first_out"]) == 3
+    assert len(rep["max_abs"]) == 14 and len(rep["max_abs_t"]) == episode_steps(env, run.policy)
+    assert max(rep["max_abs"]) == pytest.approx(max(rep["max_abs_t"]), abs=1e-3)
+    assert all(f == -1 or 0 <= f < len(rep["max_abs_t"]) for f in rep["first_out"])
+
+
+def test_error_groups_follow_the_action_layout():
+    from equibim_jax.evaluation.open_loop import describe_errors, error_groups
+
+    register_task(TOY_TASK)
+    joint = eb.make_env("toy_close_gripper", side="left")
+    ee = eb.make_env("toy_close_gripper", side="left", action="ee")
+    for env, names in ((joint, {"arm_rad", "gripper"}), (ee, {"position_m", "rotation", "gripper"})):
+        g = error_groups(env)
+        assert set(g) == names
+        idx = np.sort(np.concatenate(list(g.values())))
+        np.testing.assert_array_equal(idx, np.arange(env.action_size))  # a partition of the channels
+    np.testing.assert_array_equal(error_groups(ee)["gripper"], [3 + ee.rot_dim, 2 * (3 + ee.rot_dim) + 1])
+    assert describe_errors({"arm_rad": 0.01, "gripper": 0.2}) == "arm 0.0100 rad, gripper 0.2000"
+    assert describe_errors({"position_m": 0.002, "rotation": 0.03, "gripper": 0.1}) == \
+        "position 0.0020 m, rotation 0.0300, gripper 0.1000"

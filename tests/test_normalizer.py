@@ -143,3 +143,36 @@ def test_normalizer_is_a_pytree_and_round_trips_state_dict():
     for k in norm.fields:
         np.testing.assert_array_equal(back.fields[k].scale, norm.fields[k].scale)
         np.testing.assert_array_equal(back.fields[k].offset, norm.fields[k].offset)
+
+
+def test_identity_channels_are_unscaled_and_stay_mirror_consistent():
+    """Channels named in ``identity`` keep their raw values (scale 1, offset 0) however
+    narrow their range; the others are fitted as before, and ``S`` stays a signed
+    permutation in normalised space when the mask is mapped to itself by ``S``."""
+    jm = _joint_map()
+    x = _data()
+    x[:, 0] = 0.7 + 1e-3 * x[:, 0]  # a narrow channel (half-range 1e-3 would give scale ~1e3)
+    x[:, 3] = 0.7 + 1e-3 * x[:, 3]
+    keep = np.zeros(7, bool)
+    keep[[0, 3]] = True  # channel 0 <-> 3 under S, sign +1, offset 0
+    plain = fit_normalizer({"qpos": x}, {"qpos": jm}).fields["qpos"]
+    norm = fit_normalizer({"qpos": x}, {"qpos": jm}, identity={"qpos": keep}).fields["qpos"]
+    assert float(plain.scale[0]) > 100
+    np.testing.assert_array_equal(np.asarray(norm.scale)[[0, 3]], [1.0, 1.0])
+    np.testing.assert_array_equal(np.asarray(norm.offset)[[0, 3]], [0.0, 0.0])
+    np.testing.assert_array_equal(np.asarray(norm.scale)[~keep], np.asarray(plain.scale)[~keep])
+    np.testing.assert_array_equal(np.asarray(norm.offset)[~keep], np.asarray(plain.offset)[~keep])
+    perm, signs = mirror_in_normalized_space(jm.perm, jm.signs, jm.offsets, norm)
+    np.testing.assert_array_equal(perm, PERM)
+    s_n = signed_permutation(perm, signs)
+    np.testing.assert_allclose(norm.normalize(jm(jnp.asarray(x))), s_n(norm.normalize(jnp.asarray(x))), atol=2e-5)
+
+
+def test_identity_mask_errors():
+    x = _data()
+    with pytest.raises(ValueError, match=r"identity\['qpos'\] must be a bool mask of shape \(7,\)"):
+        fit_normalizer({"qpos": x}, identity={"qpos": np.ones(6, bool)})
+    with pytest.raises(ValueError, match="bool mask"):
+        fit_normalizer({"qpos": x}, identity={"qpos": np.ones(7)})
+    with pytest.raises(ValueError, match=r"identity names fields \['ee'\]"):
+        fit_normalizer({"qpos": x}, identity={"ee": np.ones(7, bool)})

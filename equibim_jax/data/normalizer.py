@@ -14,6 +14,13 @@ give an enormous or infinite scale. They get ``scale = 1`` and are centred on th
 constant value, so they normalise to 0. Centring (rather than mapping to -1, as some
 implementations do) keeps the mirror consistency: a constant channel and its mirror
 image both map to 0, and ``S_n`` stays a signed permutation.
+
+Channels named in ``identity`` are passed through unscaled (``scale = 1, offset = 0``).
+This is for values that already live on a fixed scale in ``[-1, 1]``, such as the entries
+of an end-effector rotation (6D or quaternion). A task that holds the gripper's orientation
+nearly fixed gives such a channel a tiny demo range, and a min-max fit would blow every
+closed-loop deviation up by the inverse of that range. ``S`` acts on rotation entries as
+a signed permutation with no offset, so unscaled channels keep ``S_n`` a signed permutation.
 """
 
 from __future__ import annotations
@@ -150,6 +157,7 @@ def fit_normalizer(
     *,
     mode: Mode | Mapping[str, Mode] = "minmax",
     eps: float = 1e-4,
+    identity: Mapping[str, Array] | None = None,
 ) -> Normalizer:
     """Fit per-channel statistics on ``data ∪ S(data)``.
 
@@ -163,6 +171,9 @@ def fit_normalizer(
         std. One mode for all fields, or a mapping ``{field: mode}``.
       eps: a channel whose half-range (or std) is below ``eps`` is degenerate and gets
         ``scale = 1``, centred on its value (see module docstring).
+      identity: ``{field: bool [D]}``, channels left unscaled (``scale = 1``,
+        ``offset = 0``), e.g. rotation entries (see module docstring). The mask must be
+        mapped to itself by ``S`` for the normaliser to stay mirror-consistent.
 
     Returns:
       A :class:`Normalizer` with a ``FieldNormalizer`` (``scale, offset: [D]``) per field.
@@ -172,6 +183,11 @@ def fit_normalizer(
         non-finite values (NaN/inf) in the data or in its mirror image.
     """
     get_op = _as_field_ops(symmetry) if symmetry is not None else (lambda name: None)
+    identity = dict(identity or {})
+    unknown = sorted(set(identity) - set(data))
+    if unknown:
+        raise ValueError(f"fit_normalizer: identity names fields {unknown} that are not in the data "
+                         f"({sorted(data)})")
     fields = {}
     for name, x in data.items():
         x = np.asarray(x)
@@ -191,6 +207,15 @@ def fit_normalizer(
             x = np.concatenate([x, mx], axis=0)
         field_mode = mode[name] if isinstance(mode, Mapping) else mode
         scale, offset = _channel_stats(x, field_mode, eps, name)
+        if name in identity:
+            keep = np.asarray(identity[name])
+            if keep.dtype != bool or keep.shape != (x.shape[-1],):
+                raise ValueError(
+                    f"fit_normalizer: identity[{name!r}] must be a bool mask of shape ({x.shape[-1]},) "
+                    f"(the field's channels); got dtype {keep.dtype}, shape {keep.shape}"
+                )
+            scale = np.where(keep, 1.0, scale).astype(np.float32)
+            offset = np.where(keep, 0.0, offset).astype(np.float32)
         fields[name] = FieldNormalizer(scale=jnp.asarray(scale), offset=jnp.asarray(offset))
     return Normalizer(fields)
 

@@ -17,7 +17,31 @@ from equibim_jax.policies.base import Policy
 from equibim_jax.sim.env import Env
 from equibim_jax.training.losses import mirror_batch
 
-__all__ = ["open_loop_errors"]
+__all__ = ["open_loop_errors", "error_groups", "describe_errors"]
+
+
+def error_groups(env: Env) -> dict[str, np.ndarray]:
+    """``{name: action channel indices}`` the errors are averaged over, by the env's action
+    layout: joint actions ``{"arm_rad", "gripper"}`` (arm joints in rad, openings);
+    end-effector actions ``{"position_m", "rotation", "gripper"}`` (site positions in m,
+    rotation entries, 6D or quaternion, unitless, openings)."""
+    if env.config.action == "joint":
+        n = env.info.n_arm
+        return {"arm_rad": np.r_[0:n, n + 1 : 2 * n + 1], "gripper": np.array([n, 2 * n + 1])}
+    r = env.rot_dim
+    per = 3 + r + 1
+    return {"position_m": np.r_[0:3, per : per + 3], "rotation": np.r_[3 : 3 + r, per + 3 : per + 3 + r],
+            "gripper": np.array([per - 1, 2 * per - 1])}
+
+
+_UNITS = {"arm_rad": ("arm", " rad"), "position_m": ("position", " m"), "rotation": ("rotation", ""),
+          "gripper": ("gripper", "")}
+
+
+def describe_errors(d: Mapping[str, Any]) -> str:
+    """One line for an error dict of :func:`open_loop_errors`, e.g. ``"arm 0.0031 rad,
+    gripper 0.012"`` or ``"position 0.0021 m, rotation 0.0040, gripper 0.012"``."""
+    return ", ".join(f"{_UNITS[k][0]} {d[k]:.4f}{_UNITS[k][1]}" for k in _UNITS if k in d)
 
 
 def open_loop_errors(policy: Policy, normalizer: Normalizer, params: Mapping[str, Any], demos: Demos,
@@ -38,10 +62,11 @@ def open_loop_errors(policy: Policy, normalizer: Normalizer, params: Mapping[str
       params: ``{name: parameters}``; all share one compiled function.
       demos: the demonstrations. env: their env (its ``S`` and arm layout).
     Returns:
-      ``{name: {"demos": {"arm_rad", "gripper"}, "mirrored_demos": {...},
-      "equivariance": {"arm_rad", "gripper", "per_dim_normalized_rms": [A]}}}``: mean
-      absolute errors of arm joints (rad) and gripper openings, and the gap per action
-      dimension in normalised units.
+      ``{name: {"demos": {group: error}, "mirrored_demos": {...}, "equivariance": {...,
+      "per_dim_normalized_rms": [A]}}}``: mean absolute errors per group of action
+      channels (:func:`error_groups`: ``arm_rad`` and ``gripper`` for joint actions,
+      ``position_m``, ``rotation`` and ``gripper`` for end-effector actions), and the gap
+      per action dimension in normalised units.
     """
     cfg = policy.config
     fields = tuple(cfg.obs_keys)
@@ -52,9 +77,11 @@ def open_loop_errors(policy: Policy, normalizer: Normalizer, params: Mapping[str
     key = jax.random.key(seed)
     batch = sample_batch(dataset, key, n_windows)
     mirrored = mirror_batch(sym, batch)
-    n_arm = env.info.n_arm
-    arm = np.r_[0:n_arm, n_arm + 1 : 2 * n_arm + 1]
-    grip = np.array([n_arm, 2 * n_arm + 1])
+    groups = error_groups(env)
+    size = max(int(i.max()) for i in groups.values()) + 1
+    if batch["action"].shape[-1] != size:
+        raise ValueError(f"open_loop_errors: the actions have {batch['action'].shape[-1]} channels; the env's "
+                         f"{env.config.action!r} action layout has {size}")
     act = normalizer.fields["action"]
     start = cfg.obs_horizon - 1
 
@@ -62,7 +89,7 @@ def open_loop_errors(policy: Policy, normalizer: Normalizer, params: Mapping[str
         return act.unnormalize(a)[:, start : start + cfg.action_horizon]
 
     def split(d):
-        return jnp.mean(d[..., arm]), jnp.mean(d[..., grip])
+        return {k: jnp.mean(d[..., idx]) for k, idx in groups.items()}
 
     @jax.jit
     def err(p):
@@ -78,7 +105,6 @@ def open_loop_errors(policy: Policy, normalizer: Normalizer, params: Mapping[str
     out = {}
     for name, p in params.items():
         res, per_dim = jax.device_get(err(p))
-        out[name] = {which: {"arm_rad": float(e_arm), "gripper": float(e_grip)}
-                     for which, (e_arm, e_grip) in res.items()}
+        out[name] = {which: {k: float(v) for k, v in errs.items()} for which, errs in res.items()}
         out[name]["equivariance"]["per_dim_normalized_rms"] = [float(x) for x in per_dim]
     return out

@@ -375,6 +375,16 @@ def _gen_task(task: TaskConfig) -> TaskConfig:
     return TaskConfig(task.name, {**task.options, "action": "joint"})
 
 
+def _norm_rule(cell: Cell) -> dict:
+    """The part of a train unit's key that names the normaliser's rule, where the cell has
+    end-effector rotation channels (``ee`` observed or ``action="ee"``): they are left
+    unscaled (``training.run.rotation_channels``). Runs trained before that rule min-max
+    scaled them; their keys, without this entry, are not reused for it. Cells without such
+    channels keep their keys."""
+    ee = "ee" in tuple(cell.policy.obs_keys) or cell.task.options.get("action", "joint") == "ee"
+    return {"normalizer": {"ee_rotation": "unscaled"}} if ee else {}
+
+
 def _steady_step_s(s: dict, steps: int, k: int) -> float | None:
     """Seconds per train step after the first dispatch (which includes compiling), or
     over all steps when there was one dispatch; None when no step ran."""
@@ -409,7 +419,7 @@ def run_cell(cell: Cell, arms: tuple, root: Path, manifest: Manifest, progress: 
     run_keys, run_dirs, train_info, pending = {}, {}, {}, {}
     for arm in arms:
         tc = cell.arm_config(arm)
-        rkey = unit_key("train", {"data": dkey, "policy": cell.policy, "train": tc})
+        rkey = unit_key("train", {"data": dkey, "policy": cell.policy, "train": tc, **_norm_rule(cell)})
         rel = f"units/runs/{cell.task.name}-{rkey}"  # arms with equal configs share it
         run_keys[arm], run_dirs[arm] = rkey, root / rel
         if (not manifest.done(rkey) or not (root / rel / "summary.json").exists()) and rkey not in pending:
@@ -543,7 +553,8 @@ def _cell_config(c: Cell) -> dict:
     """The JSON form of everything that determines a cell's results."""
     return json.loads(json.dumps({"task": config_to_dict(c.task), "policy": config_to_dict(c.policy),
                                   "demos": c.demos, "seed": c.seed, "train": config_to_dict(c.train),
-                                  "eval": config_to_dict(c.eval), "evals": [list(e) for e in c.evals]},
+                                  "eval": config_to_dict(c.eval), "evals": [list(e) for e in c.evals],
+                                  **_norm_rule(c)},
                                  default=str))
 
 

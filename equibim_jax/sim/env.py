@@ -314,6 +314,14 @@ class Env:
     def rot_dim(self) -> int:
         return 6 if self.config.rotation == "6d" else 4
 
+    def ee_rotation_mask(self) -> np.ndarray:
+        """Bool ``[2 * (3 + R + 1)]``: the rotation entries of the end-effector layout
+        (per arm: position 3, rotation ``R``, opening 1), used by the ``ee`` observation and
+        by ``action="ee"`` actions. ``S`` maps the mask to itself."""
+        one = np.zeros(3 + self.rot_dim + 1, bool)
+        one[3:3 + self.rot_dim] = True
+        return np.concatenate([one, one])
+
     @property
     def action_size(self) -> int:
         if self.config.action == "joint":

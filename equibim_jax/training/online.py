@@ -410,6 +410,7 @@ def train_online(
     from equibim_jax.policies.base import make_policy
     from equibim_jax.training.checkpoint import latest_step, restore_checkpoint, save_checkpoint
     from equibim_jax.training.train_step import base_key, create_train_state
+    from equibim_jax.training.run import rotation_channels
 
     oc, tc = online_config, train_config
     per_dispatch = oc.iterations * oc.grad_steps
@@ -451,7 +452,7 @@ def train_online(
     ends = np.cumsum(ends)
     act_sym = env.ee_action_symmetry if oc.action_space == "ee" else env.joint_action_symmetry
     sym_raw = {**env.symmetry_ops(fields, akey), akey: act_sym}
-    normalizer = fit_normalizer(frames, sym_raw)
+    normalizer = fit_normalizer(frames, sym_raw, identity=rotation_channels(env, fields, akey, oc.action_space))
     cfg = policy_config.with_data(frames[akey].shape[-1], {f: frames[f].shape[-1] for f in fields},
                                   {f: tuple(frames[f].shape[1:]) for f in fields})
     policy = make_policy(cfg.name, cfg)

@@ -107,13 +107,25 @@ def constant_action_warning(policy_config: PolicyConfig, actions: np.ndarray, to
             "poorly and samples noise in them. Use prediction='sample' for these actions.")
 
 
+def rotation_channels(env: Env, fields, action_key: str, action_space: str) -> dict[str, np.ndarray]:
+    """``{field: bool [D]}``: the end-effector rotation entries among the ``ee`` observation
+    (when in ``fields``) and an ``action_space == "ee"`` action (under ``action_key``); the
+    normaliser leaves them unscaled (``fit_normalizer(identity=...)``)."""
+    out = {}
+    if "ee" in fields:
+        out["ee"] = env.ee_rotation_mask()
+    if action_space == "ee":
+        out[action_key] = env.ee_rotation_mask()
+    return out
+
+
 def prepare_data(demos: Demos, env: Env, policy_config: PolicyConfig,
                  normalizer: Normalizer | None = None) -> Data:
     """Frames of the fields the policy reads, the mirror-consistent normaliser (fitted on
-    the frames and their mirror images unless given), ``S`` in normalised space, the
-    policy config with the data's dims, and the on-device windows. Warns
-    (:func:`constant_action_warning`) when a noise-predicting policy meets constant action
-    channels."""
+    the frames and their mirror images unless given; end-effector rotation entries left
+    unscaled, :func:`rotation_channels`), ``S`` in normalised space, the policy config with
+    the data's dims, and the on-device windows. Warns (:func:`constant_action_warning`)
+    when a noise-predicting policy meets constant action channels."""
     fields = tuple(policy_config.obs_keys)
     frames, ends = frames_from_demos(demos, fields)
     msg = constant_action_warning(policy_config, frames["action"])
@@ -122,7 +134,9 @@ def prepare_data(demos: Demos, env: Env, policy_config: PolicyConfig,
     sym_raw = env.symmetry_ops(fields, policy_config.action_key)
     if policy_config.action_key != "action":
         frames[policy_config.action_key] = frames.pop("action")
-    normalizer = normalizer if normalizer is not None else fit_normalizer(frames, sym_raw)
+    if normalizer is None:
+        unscaled = rotation_channels(env, fields, policy_config.action_key, env.config.action)
+        normalizer = fit_normalizer(frames, sym_raw, identity=unscaled)
     cfg = policy_config.with_data(frames[policy_config.action_key].shape[-1],
                                   {f: frames[f].shape[-1] for f in fields},
                                   {f: tuple(frames[f].shape[1:]) for f in fields})
