@@ -16,7 +16,7 @@ from equibim_jax.data.dataset import Demos
 from equibim_jax.data.normalizer import fit_normalizer
 from equibim_jax.policies import register_policy
 from equibim_jax.tasks import register_task
-from equibim_jax.training.run import prepare_data, rotation_channels
+from equibim_jax.training.run import ee_rotation_mask, prepare_data, rotation_channels
 
 
 @pytest.fixture(scope="module")
@@ -42,8 +42,13 @@ def test_rotation_mask_layout(ee_env_and_demos):
     assert mask.shape == (env.action_size,) and mask.sum() == 2 * env.rot_dim
     one = np.r_[np.zeros(3, bool), np.ones(env.rot_dim, bool), False]
     np.testing.assert_array_equal(mask, np.r_[one, one])
-    assert rotation_channels(env, ("qpos",), "action", "joint") == {}
-    assert set(rotation_channels(env, ("qpos", "ee"), "act", "ee")) == {"ee", "act"}
+    assert rotation_channels({"qpos": 14, "action": 14}, "action", "joint") == {}
+    got = rotation_channels({"qpos": 14, "ee": 20, "act": 20}, "act", "ee")
+    assert set(got) == {"ee", "act"}
+    np.testing.assert_array_equal(got["ee"], mask)
+    assert ee_rotation_mask(16).sum() == 8  # quaternion layout
+    with pytest.raises(ValueError, match=r"2 \* \(3 \+ R \+ 1\) entries"):
+        ee_rotation_mask(14)
 
 
 def test_ee_rotation_entries_unscaled_and_mirror_consistent(ee_env_and_demos):

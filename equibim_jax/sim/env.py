@@ -318,9 +318,9 @@ class Env:
         """Bool ``[2 * (3 + R + 1)]``: the rotation entries of the end-effector layout
         (per arm: position 3, rotation ``R``, opening 1), used by the ``ee`` observation and
         by ``action="ee"`` actions. ``S`` maps the mask to itself."""
-        one = np.zeros(3 + self.rot_dim + 1, bool)
-        one[3:3 + self.rot_dim] = True
-        return np.concatenate([one, one])
+        from equibim_jax.training.run import ee_rotation_mask
+
+        return ee_rotation_mask(2 * (3 + self.rot_dim + 1))
 
     @property
     def action_size(self) -> int:

@@ -452,7 +452,7 @@ def train_online(
     ends = np.cumsum(ends)
     act_sym = env.ee_action_symmetry if oc.action_space == "ee" else env.joint_action_symmetry
     sym_raw = {**env.symmetry_ops(fields, akey), akey: act_sym}
-    normalizer = fit_normalizer(frames, sym_raw, identity=rotation_channels(env, fields, akey, oc.action_space))
+    normalizer = fit_normalizer(frames, sym_raw, identity=rotation_channels({k: v.shape[-1] for k, v in frames.items()}, akey, oc.action_space))
     cfg = policy_config.with_data(frames[akey].shape[-1], {f: frames[f].shape[-1] for f in fields},
                                   {f: tuple(frames[f].shape[1:]) for f in fields})
     policy = make_policy(cfg.name, cfg)

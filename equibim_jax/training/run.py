@@ -107,16 +107,33 @@ def constant_action_warning(policy_config: PolicyConfig, actions: np.ndarray, to
             "poorly and samples noise in them. Use prediction='sample' for these actions.")
 
 
-def rotation_channels(env: Env, fields, action_key: str, action_space: str) -> dict[str, np.ndarray]:
-    """``{field: bool [D]}``: the end-effector rotation entries among the ``ee`` observation
-    (when in ``fields``) and an ``action_space == "ee"`` action (under ``action_key``); the
-    normaliser leaves them unscaled (``fit_normalizer(identity=...)``)."""
+def ee_rotation_mask(size: int) -> np.ndarray:
+    """Bool ``[size]``: the rotation entries of the end-effector layout (per arm: position
+    3, rotation ``R`` = 6 (6D) or 4 (quaternion), opening 1; ``size = 2 * (3 + R + 1)``)."""
+    rot = size // 2 - 4
+    if size % 2 or rot not in (4, 6):
+        raise ValueError(f"an end-effector field has 2 * (3 + R + 1) entries with R = 6 or 4 (20 or 16); got {size}")
+    one = np.r_[np.zeros(3, bool), np.ones(rot, bool), False]
+    return np.concatenate([one, one])
+
+
+def rotation_channels(sizes: dict[str, int], action_key: str, action_space: str) -> dict[str, np.ndarray]:
+    """``{field: bool [D]}``: the end-effector rotation entries of the ``ee`` observation
+    (when in ``sizes``, ``{field: D}``) and of an ``action_space == "ee"`` action (under
+    ``action_key``); the normaliser leaves them unscaled (``fit_normalizer(identity=...)``)."""
     out = {}
-    if "ee" in fields:
-        out["ee"] = env.ee_rotation_mask()
-    if action_space == "ee":
-        out[action_key] = env.ee_rotation_mask()
+    if "ee" in sizes:
+        out["ee"] = ee_rotation_mask(int(sizes["ee"]))
+    if action_space == "ee" and action_key in sizes:
+        out[action_key] = ee_rotation_mask(int(sizes[action_key]))
     return out
+
+
+def _action_space(env) -> str:
+    """``"joint"`` or ``"ee"``: an :class:`Env`'s ``config.action``, or the ``action_space``
+    of an env stand-in (``interop.symmetry.MapEnv``)."""
+    space = getattr(env, "action_space", None)
+    return space if space is not None else env.config.action
 
 
 def prepare_data(demos: Demos, env: Env, policy_config: PolicyConfig,
@@ -135,7 +152,8 @@ def prepare_data(demos: Demos, env: Env, policy_config: PolicyConfig,
     if policy_config.action_key != "action":
         frames[policy_config.action_key] = frames.pop("action")
     if normalizer is None:
-        unscaled = rotation_channels(env, fields, policy_config.action_key, env.config.action)
+        sizes = {k: v.shape[-1] for k, v in frames.items()}
+        unscaled = rotation_channels(sizes, policy_config.action_key, _action_space(env))
         normalizer = fit_normalizer(frames, sym_raw, identity=unscaled)
     cfg = policy_config.with_data(frames[policy_config.action_key].shape[-1],
                                   {f: frames[f].shape[-1] for f in fields},
