@@ -552,6 +552,9 @@ def test_train_config_errors():
         make_train_loop(TrainConfig(sym_weight=1.0), None, None)
 
 
+# slow: it compares the tuned and plain train steps at XLA's default optimisation level,
+# which the slow suite keeps (the default suite compiles at level 0; tests/conftest.py).
+@pytest.mark.slow
 def test_train_compiler_options(monkeypatch, setup):
     """The train step's XLA:CPU options are on by default, off with EQUIBIM_JAX_XLA_TUNING=0,
     and change speed, not results."""
