@@ -31,4 +31,3 @@ def pytest_configure(config):
         flags = os.environ.get("XLA_FLAGS", "")
         if "xla_backend_optimization_level" not in flags:
             os.environ["XLA_FLAGS"] = f"{flags} {_O0_FLAG}".strip()
-
