@@ -5,12 +5,17 @@ distribution is mirror-symmetric (starts drawn by the task's ``init`` against th
 images, coordinate by coordinate); a few starts and their mirror images are valid: no
 interpenetration, objects where the task put them, success false.
 
-Slow suite, one compiled rollout program per task: ``jit`` reset, mirror and step; shapes
-and no NaN; the expert's success rate (>= 95 %) on the first 50 of the 200 seeded starts
-that ``equibim experts --episodes 200`` runs (its JSON, committed under ``docs/results/``,
-holds the rate on all 200); and ``S`` maps a recorded expert demo (observations and
-actions) onto the demo the expert records from the mirrored start.
+The generic expert check (``task_rollouts.check_expert_episodes``, slow: one compiled rollout
+program per task): ``jit`` reset, mirror and step; shapes and no NaN; the expert's success
+rate (>= 95 %) on the first 50 of the 200 seeded starts that ``equibim experts --episodes
+200`` runs (its JSON, committed under ``docs/results/``, holds the rate on all 200); and ``S``
+maps a recorded expert demo (observations and actions) onto the demo the expert records from
+the mirrored start. A task with its own ``tests/test_<task>.py`` runs it there, on the same
+episodes as its task-specific expert checks; this file runs it for the other tasks and checks
+that each task file does.
 """
+
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -20,9 +25,9 @@ import pytest
 from mujoco import mjx
 from scipy.stats import ks_2samp
 
-from equibim_jax._batching import chunked_vmap
-from equibim_jax.experts import make_expert, make_rollout
 from equibim_jax.tasks import make_env, make_scene, task_entry, task_names
+
+from task_rollouts import check_expert_episodes, expert_episodes
 
 TASKS = task_names()
 
@@ -78,71 +83,27 @@ def test_initial_distribution_is_mirror_symmetric_and_valid(task):
         assert not bool(success), f"{task}: success is true at a start"
 
 
-# ------------------------------------------------------------------------------ slow
-N_SEEDS = 50  # the first 50 of `equibim experts`' 200 starts (all 200: `equibim experts`)
-N_MIRROR = 25  # of these starts, the first 25 are also run from their mirror images
+# ----------------------------------------------------------------- the generic expert check
+HERE = Path(__file__).resolve().parent
+
+
+def own_test_file(task: str) -> Path:
+    return HERE / f"test_{task}.py"
+
+
+@pytest.mark.parametrize("task", [t for t in TASKS if own_test_file(t).is_file()])
+def test_own_test_file_runs_the_generic_expert_check(task):
+    """A task with its own test file runs the generic expert check there, on the episodes its
+    own expert checks use (one compiled program per task), instead of here."""
+    text = own_test_file(task).read_text()
+    assert "expert_episodes(" in text and "check_expert_episodes(" in text, (
+        f"{own_test_file(task).name} must call task_rollouts.expert_episodes and check_expert_episodes")
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("task", [t for t in TASKS if not own_test_file(t).is_file()])
 def test_expert_success_and_mirror_equivariance(task):
-    """The first N_SEEDS of the 200 seeded starts of ``equibim experts --seed 2024``, run to
-    the end of the expert's script, plus the mirror images of the first 25: one compiled
-    program."""
-    env = make_env(task, obs=("qpos", "ee"))
-    expert = make_expert(env)
-    length = expert.horizon + 10
-    roll = make_rollout(env, expert, length=length, obs=True)
-    batch = N_MIRROR
-
-    @jax.jit
-    def starts(keys):
-        s = jax.vmap(env.reset)(keys)
-        return s, jax.vmap(env.mirror_state)(s)
-
-    @jax.jit
-    def run(s0):
-        final, traj = chunked_vmap(roll.from_state, chunk=batch)(s0)
-        return final.info["success"], traj
-
-    keys = jax.random.split(jax.random.key(2024), 200)[:N_SEEDS]
-    succ, trajs = [], []
-    for i in range(0, N_SEEDS, batch):
-        s0, s0m = starts(keys[i : i + batch])
-        if i == 0:  # shapes, no NaN, success false at reset (jitted reset and mirror)
-            assert s0.data.qpos.shape == (batch, env.mj_model.nq)
-            assert s0.obs["qpos"].shape == (batch, 2 * (env.info.n_arm + 1))
-            assert s0.obs["ee"].shape == (batch, 2 * 10)
-            for s in (s0, s0m):
-                assert not np.asarray(s.info["success"]).any()
-                assert np.all(np.isfinite(np.asarray(s.data.qpos)))
-            first = s0
-            ok_m, traj_m = run(s0m)
-        ok, traj = run(s0)
-        succ.append(np.asarray(ok))
-        if i == 0:
-            trajs = traj
-    success = np.concatenate(succ)
-    rate = success.mean()
-    print(f"\n{task}: expert success {success.sum()}/{N_SEEDS} over {length} steps; failed "
-          f"{np.flatnonzero(~success).tolist()}")
-    assert rate >= 0.95
-    # shapes and no NaN along the episodes
-    t = jax.tree.map(np.asarray, trajs)
-    assert t["action"].shape == (batch, length, env.action_size)
-    for leaf in jax.tree.leaves(t):
-        assert np.all(np.isfinite(leaf))
-    # S maps the recorded demo onto the mirrored start's demo: actions to float round-off
-    # (the script is open loop), observations up to the drift of two contact simulations.
-    tm = jax.tree.map(np.asarray, traj_m)
-    act_err = np.abs(np.asarray(env.action_symmetry(jnp.asarray(t["action"]))) - tm["action"]).max()
-    obs_err = {f: np.abs(np.asarray(env.obs_symmetry.ops[f](jnp.asarray(t["obs"][f]))) - tm["obs"][f])
-               for f in ("qpos", "ee")}
-    print(f"{task}: max |a_mirror - S a| = {act_err:.1e}; obs qpos/ee error median "
-          f"{np.median(obs_err['qpos']):.1e}/{np.median(obs_err['ee']):.1e}, "
-          f"99th pct {np.percentile(obs_err['qpos'], 99):.1e}/{np.percentile(obs_err['ee'], 99):.1e}")
-    assert act_err < 1e-3
-    assert np.median(obs_err["qpos"]) < 1e-3 and np.percentile(obs_err["qpos"], 99) < 0.05
-    assert np.median(obs_err["ee"]) < 1e-3 and np.percentile(obs_err["ee"], 99) < 0.05
-    np.testing.assert_array_equal(np.asarray(ok_m), success[:batch])  # same outcomes
-    assert np.abs(tm["action"] - t["action"]).max() > 0.05  # the other arm acted: not vacuous
-    del first
+    """The first 50 of the 200 seeded starts of ``equibim experts --seed 2024``, run to the end
+    of the expert's script, plus the mirror images of the first 25 (one compiled program), for
+    tasks without a test file of their own."""
+    check_expert_episodes(expert_episodes(task))

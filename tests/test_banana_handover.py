@@ -2,10 +2,12 @@
 symmetric, few contact pairs), the initial distribution and its shift options, the success
 predicate on hand-built states and on states the scripted expert reaches in MuJoCo C.
 
-Slow tests: one compiled MJX rollout program (the default env) runs, in one batch, the
-expert from seeded starts on both sides and their mirror images, starts drawn with
-``mirrored_orientation=True`` (the shift the paper applies to this task), and starts on the
-right side with ``asymmetric_quality=1.0`` (every one perturbed: those must fail).
+Slow tests: one compiled MJX rollout program, the task's ``task_rollouts.expert_episodes``
+(50 seeded starts and the mirror images of 25), serves the generic expert check and, in
+batches of 25, runs the expert from more starts: seeded starts on both sides and their
+mirror images, starts drawn with ``mirrored_orientation=True`` (the shift the paper applies
+to this task), and starts on the right side with ``asymmetric_quality=1.0`` (every one
+perturbed: those must fail).
 """
 
 import copy
@@ -18,12 +20,12 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
-from equibim_jax.experts import make_expert, make_rollout
+from equibim_jax.experts import make_expert
 from equibim_jax.experts.banana_handover import BananaExpertConfig
 from equibim_jax.tasks import make_env, make_scene, task_entry, task_names, task_options
 from equibim_jax.tasks.banana_handover import BananaHandover
 
-from task_rollouts import collides
+from task_rollouts import check_expert_episodes, collides, expert_episodes, run_starts
 
 TASK = "banana_handover"
 CFG = BananaExpertConfig()
@@ -269,17 +271,28 @@ N_PERTURBED = 16  # right-side starts with asymmetric_quality=1.0
 
 
 @pytest.fixture(scope="module")
-def mjx_rollouts(env):
-    """One compiled rollout (the default env, qpos observations) from a batch of starts:
-    N_SEEDS starts on the left, the same keys' starts on the right (their exact mirror
-    images, see ``test_initial_distribution_and_shift_options``), N_MIRRORED starts with
+def episodes():
+    """The task's shared expert episodes (``task_rollouts.expert_episodes``): 50 seeded starts,
+    the first 25 also from their mirror images, one compiled program."""
+    return expert_episodes(TASK)
+
+
+@pytest.mark.slow
+def test_expert_generic_checks(episodes):
+    """Success rate over 50 starts, shapes, and S on the recorded demos (``task_rollouts``)."""
+    check_expert_episodes(episodes)
+
+
+@pytest.fixture(scope="module")
+def mjx_rollouts(episodes):
+    """The shared episodes' compiled rollout run from another batch of starts: N_SEEDS starts
+    on the left, the same keys' starts on the right (their exact mirror images, see
+    ``test_initial_distribution_and_shift_options``), N_MIRRORED starts with
     ``mirrored_orientation=True`` and N_PERTURBED right-side starts with
     ``asymmetric_quality=1.0``. The options change only ``qpos`` and ``info`` of a start, so
-    the starts are the default env's reset states with those two replaced (``mjx.step``
-    recomputes everything else from ``qpos``), and one program runs them all."""
-    length = CFG.horizon + 10
-    expert = make_expert(env)
-    roll = make_rollout(env, expert, length=length, obs=False)
+    the starts are the env's reset states with those two replaced (``mjx.step`` recomputes
+    everything else from ``qpos``), and the one program runs them all."""
+    env = episodes.env
     k = jax.random.split(jax.random.key(5), N_SEEDS + N_MIRRORED + N_PERTURBED)
     groups = [({"side": "left"}, k[:N_SEEDS]), ({"side": "right"}, k[:N_SEEDS]),
               ({"mirrored_orientation": True, "side": "left"}, k[N_SEEDS : N_SEEDS + N_MIRRORED // 2]),
@@ -291,19 +304,19 @@ def mjx_rollouts(env):
     assert len(keys) == N_SEEDS * 2 + N_MIRRORED + N_PERTURBED
 
     @jax.jit
-    def run(keys, qpos, info):
+    def starts(keys, qpos, info):
         s0 = jax.vmap(env.reset)(keys)
-        s0 = s0.replace(data=s0.data.replace(qpos=qpos.astype(s0.data.qpos.dtype)),
-                        info={**s0.info, **info})
-        final, traj = jax.vmap(roll.from_state)(s0)
-        return s0, final, traj
+        info = {**s0.info, **{k: v.astype(s0.info[k].dtype) for k, v in info.items()}}
+        return s0.replace(data=s0.data.replace(qpos=qpos.astype(s0.data.qpos.dtype)), info=info)
 
-    s0, final, traj = run(keys, qpos, info)
-    return s0, final, jax.tree.map(np.asarray, traj)
+    s0 = starts(keys, qpos, info)
+    final, traj = run_starts(episodes, s0)
+    return s0, final, traj
 
 
 @pytest.mark.slow
-def test_expert_hands_over_on_both_sides_and_mirrored_orientation(env, mjx_rollouts):
+def test_expert_hands_over_on_both_sides_and_mirrored_orientation(episodes, mjx_rollouts):
+    env = episodes.env
     s0, final, traj = mjx_rollouts
     n = 2 * N_SEEDS + N_MIRRORED
     side = np.asarray(s0.info["side"])[:n]
@@ -325,7 +338,7 @@ def test_expert_hands_over_on_both_sides_and_mirrored_orientation(env, mjx_rollo
 
 
 @pytest.mark.slow
-def test_perturbed_episodes_fail(env, mjx_rollouts):
+def test_perturbed_episodes_fail(mjx_rollouts):
     s0, final, _ = mjx_rollouts
     bad = slice(2 * N_SEEDS + N_MIRRORED, None)
     assert np.all(np.asarray(s0.info["perturbed"])[bad]) and np.all(np.asarray(s0.info["side"])[bad] < 0)

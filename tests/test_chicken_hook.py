@@ -1,8 +1,9 @@
 """chicken_hook: task registry and option errors, model (physical, mirror-symmetric,
 collision filter), initial distribution and the shift options' contract, success predicate
-on hand-built states (MuJoCo C), and (slow) the scripted expert in MJX: both sides,
+on hand-built states (MuJoCo C), and (slow) the scripted expert in MJX: the generic expert
+check on the task's shared episodes (``task_rollouts.expert_episodes``), then both sides,
 ``wide_init=1.5`` (the shift the paper applies to this task) and perturbed episodes
-(``asymmetric_quality=1.0``), all from one compiled rollout program.
+(``asymmetric_quality=1.0``), all through the same compiled rollout program.
 """
 
 import dataclasses
@@ -15,13 +16,12 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
-from equibim_jax.experts import make_expert, make_rollout
 from equibim_jax.experts.chicken_hook import ChickenHookExpertConfig
 from equibim_jax.experts.chicken_hook import make_expert as chicken_expert
 from equibim_jax.tasks import make_env, make_scene, task_entry, task_names
 from equibim_jax.tasks.chicken_hook import ChickenHook
 
-from task_rollouts import collides
+from task_rollouts import check_expert_episodes, collides, expert_episodes, run_starts
 
 TASK = "chicken_hook"
 
@@ -238,13 +238,25 @@ class _Flipped(ChickenHook):
 
 
 @pytest.fixture(scope="module")
-def rollouts(env):
-    """One compiled rollout program (the default env's) over starts drawn by four scenes on
+def episodes():
+    """The task's shared expert episodes (``task_rollouts.expert_episodes``): 50 seeded starts,
+    the first 25 also from their mirror images, one compiled program."""
+    return expert_episodes(TASK)
+
+
+@pytest.mark.slow
+def test_expert_generic_checks(episodes):
+    """Success rate over 50 starts, shapes, and S on the recorded demos (``task_rollouts``)."""
+    check_expert_episodes(episodes)
+
+
+@pytest.fixture(scope="module")
+def rollouts(episodes):
+    """The shared episodes' compiled rollout program run from starts drawn by four scenes on
     the same model: N_DEFAULT seeds, their mirror images (the starts drawn with the other
     side sign, exactly the mirrored states), N_WIDE starts with ``wide_init=1.5`` and
     N_PERTURBED with ``asymmetric_quality=1.0``; one jitted reset from ``(qpos, info)``."""
-    expert = make_expert(env)
-    roll = make_rollout(env, expert, length=expert.horizon + 10, obs=False)
+    env = episodes.env
     sc = env.scene
     scenes = [(sc, N_DEFAULT), (_Flipped(), N_DEFAULT), (dataclasses.replace(sc, wide_init=1.5), N_WIDE),
               (dataclasses.replace(sc, asymmetric_quality=1.0), N_PERTURBED)]
@@ -261,12 +273,8 @@ def rollouts(env):
         return env._finish(data, {"step": jnp.zeros((), jnp.int32), "success": jnp.zeros((), bool), **inf},
                            nan=zero, clipped=zero)
 
-    @jax.jit
-    def run(q, inf):
-        final, _ = jax.vmap(lambda a, b: roll.from_state(reset_from(a, b)))(q, inf)
-        return final.info["success"]
-
-    return jax.tree.map(np.asarray, info), np.asarray(run(qpos, info))
+    final, _ = run_starts(episodes, jax.jit(jax.vmap(reset_from))(qpos, info))
+    return jax.tree.map(np.asarray, info), np.asarray(final.info["success"])
 
 
 @pytest.mark.slow

@@ -2,8 +2,11 @@
 initial distribution, success predicate, scripted expert (success on both sides and
 mirror equivariance).
 
-One jitted batched rollout is compiled once per module (module-scoped fixture) and
-shared: N_SEEDS seeds plus their mirror images, run for a little longer than the script.
+The slow expert tests share one compiled rollout program per module, the task's
+``task_rollouts.expert_episodes``: the expert from 50 seeded starts and from the mirror
+images of the first 25 (so both sides are always covered), run 10 steps past the end of
+its script. The same episodes serve the generic expert check (success rate, shapes, ``S`` on
+the recorded demos) and this file's task-specific checks.
 """
 
 import jax
@@ -18,10 +21,9 @@ from equibim_jax.sim import robots
 from equibim_jax.tasks import make_env, make_scene, task_entry, task_names, task_options
 from equibim_jax.tasks.click_bell import ClickBell
 
-from task_rollouts import expert_rollouts
+from task_rollouts import N_PAIRS, check_expert_episodes, expert_episodes
 
-N_SEEDS = 4
-T_TEST = 130  # a little longer than the script (BellExpertConfig().horizon = 120 steps)
+N_SEEDS = N_PAIRS  # starts kept whole in the shared expert episodes, each with its mirror image
 MIRROR_Y = np.array([1.0, -1.0])
 
 
@@ -31,10 +33,22 @@ def env():
 
 
 @pytest.fixture(scope="module")
-def rollouts(env):
-    """(initial states [2N], final states [2N], traj) for N seeds then their N mirror images."""
-    assert make_expert(env).horizon < T_TEST
-    return expert_rollouts(env, N_SEEDS, T_TEST, seed=7)
+def episodes():
+    """The task's shared expert episodes (``task_rollouts.expert_episodes``): 50 seeded starts,
+    the first N_SEEDS of them also from their mirror images, one compiled program."""
+    return expert_episodes("click_bell")
+
+
+@pytest.fixture(scope="module")
+def rollouts(episodes):
+    """(initial states [2N], final states [2N], traj) for N starts then their N mirror images."""
+    return episodes.s0, episodes.final, episodes.traj
+
+
+@pytest.mark.slow  # the expert-rollout compile; CI runs it with the slow suite
+def test_expert_generic_checks(episodes):
+    """Success rate over 50 starts, shapes, and S on the recorded demos (``task_rollouts``)."""
+    check_expert_episodes(episodes)
 
 
 def _valid_start(env, qpos, side):
@@ -171,15 +185,15 @@ def test_reset_and_step_shapes_no_nan_success_false_at_reset(env, rollouts):
     b = 2 * N_SEEDS
     assert s0.obs["qpos"].shape == (b, 14) and s0.obs["ee"].shape == (b, 2 * (3 + 6 + 1))
     assert final.obs["qpos"].shape == (b, 14) and final.reward.shape == (b,)
-    assert traj["action"].shape == (b, T_TEST, env.action_size)
-    assert traj["qpos"].shape == (b, T_TEST, env.mj_model.nq)
+    assert traj["action"].shape[::2] == (b, env.action_size)
+    assert traj["qpos"].shape == (*traj["action"].shape[:2], env.mj_model.nq)
     for tree in (s0, final):
         for leaf in jax.tree.leaves((tree.obs, tree.metrics, tree.data.qpos, tree.data.qvel)):
             assert np.all(np.isfinite(np.asarray(leaf)))
     assert np.all(np.isfinite(traj["qpos"])) and np.all(np.isfinite(traj["action"]))
     assert not np.any(np.asarray(s0.info["success"]))
     assert not np.any(np.asarray(s0.metrics["pressed"]))
-    assert np.all(np.asarray(final.info["step"]) == T_TEST)
+    assert np.all(np.asarray(final.info["step"]) == traj["action"].shape[1])
     assert np.all(np.asarray(final.metrics["nan_action"]) == 0)
 
 
@@ -234,7 +248,7 @@ def test_expert_presses_the_button_on_both_sides(env, rollouts):
     assert np.all(depth.max(axis=1) >= env.scene.press_depth)
     assert np.all(np.abs(depth[:, -1]) < 1e-3)
     # the arm on the bell's side acted: the other arm's joints stayed near home
-    acts = traj["action"].reshape(2 * N_SEEDS, T_TEST, 2, -1)
+    acts = traj["action"].reshape(2 * N_SEEDS, traj["action"].shape[1], 2, -1)
     moved = np.abs(acts[..., :-1] - acts[:, :1, :, :-1]).max(axis=(1, 3))  # [B, 2]
     active = np.where(side > 0, 0, 1)
     assert np.all(moved[np.arange(len(side)), active] > 0.1)
@@ -254,7 +268,7 @@ def test_expert_mirror_equivariance(env, rollouts):
     xy_err = np.abs(xy[n:] - xy[:n] * MIRROR_Y).max()
     depth_err = np.abs(traj["qpos"][n:, :, ids["button_qadr"]] - traj["qpos"][:n, :, ids["button_qadr"]]).max()
     print(f"\nequivariance: max |a_mirror - S a| = {act_err:.2e} rad; bell xy error "
-          f"{xy_err * 1000:.4f} mm; button depth error {depth_err * 1000:.4f} mm over {T_TEST} steps")
+          f"{xy_err * 1000:.4f} mm; button depth error {depth_err * 1000:.4f} mm over {traj['action'].shape[1]} steps")
     assert np.abs(acts_m - acts).max() > 0.1  # the other arm acted: the check is not vacuous
     assert act_err < 1e-3
     assert xy_err < 1e-3 and depth_err < 1e-3

@@ -3,14 +3,15 @@ contact pairs), initial distribution and the shift options, the success predicat
 hand-built states, the rack holding a stick in MuJoCo C, and (slow) the scripted expert
 on both sides, its mirror equivariance, and its perturbed (``asymmetric_quality``) runs.
 
-The slow tests share one jitted batched rollout of the default env: 4 seeded starts,
-their 4 mirror images, and 12 right-side starts as ``side="right", asymmetric_quality=1.0``
-draws them (every one perturbed; the model is the same, only the start's info differs).
+The slow tests share one compiled rollout program, the task's
+``task_rollouts.expert_episodes`` (50 seeded starts and the mirror images of 25, for the
+generic expert check), which also runs 4 seeded starts, their 4 mirror images, and 12
+right-side starts as ``side="right", asymmetric_quality=1.0`` draws them (every one
+perturbed; the model is the same, only the start's info differs).
 """
 
 import dataclasses
 import math
-import time
 
 import jax
 import jax.numpy as jnp
@@ -19,20 +20,19 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
-from equibim_jax.experts import make_expert, make_rollout
+from equibim_jax.experts import make_expert
 from equibim_jax.experts.drumstick_hook import DrumstickExpertConfig, hang_rotation
 from equibim_jax.sim.robots import robot_info
 from equibim_jax.tasks import make_env, make_scene, task_entry, task_names, task_options
 from equibim_jax.tasks.drumstick_hook import DrumstickHook
 
-from task_rollouts import collides
+from task_rollouts import check_expert_episodes, collides, expert_episodes, run_starts
 
 TASK = "drumstick_hook"
 CFG = DrumstickExpertConfig()
 REFLECT = np.array([1.0, -1.0, 1.0])
 N_SEEDS = 4
 N_PERTURBED = 12
-T_TEST = CFG.horizon + 10
 
 
 @pytest.fixture(scope="module")
@@ -291,15 +291,27 @@ def test_rack_holds_a_stick_by_gravity_and_friction(env):
 
 # ---------------------------------------------------------------------------- expert (slow)
 @pytest.fixture(scope="module")
-def rollouts():
+def episodes():
+    """The task's shared expert episodes (``task_rollouts.expert_episodes``): 50 seeded starts,
+    the first 25 also from their mirror images, one compiled program."""
+    return expert_episodes(TASK)
+
+
+@pytest.mark.slow
+def test_expert_generic_checks(episodes):
+    """Success rate over 50 starts, shapes, and S on the recorded demos (``task_rollouts``)."""
+    check_expert_episodes(episodes)
+
+
+@pytest.fixture(scope="module")
+def rollouts(episodes):
     """(env, initial states, final states, traj): N seeds, their N mirror images, then
     N_PERTURBED right-side starts as ``side="right", asymmetric_quality=1.0`` draws them
-    (every one perturbed); one jitted batch. The env observes qpos only (no rendering: the
-    expert is open loop). One reset program serves all starts: a right-side start is the
-    default draw or its mirror image, whichever lies on the right, with its flag set."""
-    env = make_env(TASK, obs=("qpos",))
+    (every one perturbed), run through the shared episodes' compiled program. One reset
+    program serves all starts: a right-side start is the default draw or its mirror image,
+    whichever lies on the right, with its flag set."""
+    env = episodes.env
     pert = make_scene(TASK, side="right", asymmetric_quality=1.0)
-    roll = make_rollout(env, make_expert(env), length=T_TEST, obs=False)
     keys = jax.random.split(jax.random.key(21), N_SEEDS + N_PERTURBED)
 
     @jax.jit
@@ -313,16 +325,12 @@ def rollouts():
         n = N_SEEDS
         return jax.tree.map(lambda a, b, c: jnp.concatenate([a[:n], b[:n], c[n:]]), s, sm, sr)
 
-    t0 = time.time()
     s0 = starts(keys)
     # the perturbed starts are what the asymmetric_quality=1.0, side="right" scene draws
     qp, ip = jax.jit(jax.vmap(lambda k: pert.init(k, env)))(keys[N_SEEDS:])
     assert np.all(np.asarray(ip["perturbed"])) and np.all(np.asarray(ip["side"]) == -1.0)
     np.testing.assert_allclose(np.asarray(s0.data.qpos)[2 * N_SEEDS :], np.asarray(qp), atol=1e-6)
-    final, traj = jax.jit(jax.vmap(roll.from_state))(s0)
-    traj = jax.tree.map(np.asarray, traj)
-    print(f"\n{2 * N_SEEDS + N_PERTURBED} episodes of {T_TEST} steps (compile included): "
-          f"{time.time() - t0:.0f} s")
+    final, traj = run_starts(episodes, s0)
     return env, s0, final, traj
 
 

@@ -1,11 +1,14 @@
 """handover_block: task registry and option errors (including ``robotwin_faithful``), model,
 initial distribution (mirror-symmetric by default, always-left when faithful), success
-predicate, scripted two-arm expert (handover on both sides, mirror equivariance, 200-seed
+predicate, scripted two-arm expert (handover on both sides, mirror equivariance, 50-start
 success rate, the faithful variant).
 
-One env (the task's default observations: qpos and a 64-point cloud) and one jitted
-batched rollout are built once per module and shared: 4 seeds plus their mirror images
-(so both sides are always covered), run for a few steps past the end of the release.
+The slow expert tests share one compiled rollout program per module, the task's
+``task_rollouts.expert_episodes``: the expert from 50 seeded starts and from the mirror
+images of the first 25 (so both sides are always covered), run 10 steps past the end of
+its script. The same episodes serve the generic expert check (success rate, shapes, ``S`` on
+the recorded demos) and this file's task-specific checks.
+The faithful variant's starts run through the same program.
 """
 
 import dataclasses
@@ -17,18 +20,16 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
-from equibim_jax._batching import chunked_vmap
-from equibim_jax.experts import make_expert, make_rollout
+from equibim_jax.experts import make_expert
 from equibim_jax.experts.handover_block import PHASES, HandoverExpertConfig
 from equibim_jax.tasks import make_env, make_scene, task_entry, task_names, task_options
 from equibim_jax.tasks.handover_block import HandoverBlock
 
-from task_rollouts import collides, expert_rollouts
+from task_rollouts import N_PAIRS, assert_same_point_set, collides, check_expert_episodes, expert_episodes
 
 TASK = "handover_block"
-N_SEEDS = 4
+N_SEEDS = N_PAIRS  # starts kept whole in the shared expert episodes, each with its mirror image
 CFG = HandoverExpertConfig()
-T_TEST = CFG.release_end + 10  # a few steps past the receiver's release
 REFLECT = np.array([1.0, -1.0, 1.0])
 
 
@@ -43,9 +44,22 @@ def env():
 
 
 @pytest.fixture(scope="module")
-def rollouts(env):
-    """(initial states [2N], final states [2N], traj) for N seeds then their N mirror images."""
-    return expert_rollouts(env, N_SEEDS, T_TEST, seed=11)
+def episodes():
+    """The task's shared expert episodes (``task_rollouts.expert_episodes``): 50 seeded starts,
+    the first N_SEEDS of them also from their mirror images, one compiled program."""
+    return expert_episodes(TASK)
+
+
+@pytest.fixture(scope="module")
+def rollouts(episodes):
+    """(initial states [2N], final states [2N], traj) for N starts then their N mirror images."""
+    return episodes.s0, episodes.final, episodes.traj
+
+
+@pytest.mark.slow  # the expert-rollout compile; CI runs it with the slow suite
+def test_expert_generic_checks(episodes):
+    """Success rate over 50 starts, shapes, and S on the recorded demos (``task_rollouts``)."""
+    check_expert_episodes(episodes)
 
 
 # ---------------------------------------------------------------------------- registry
@@ -191,10 +205,8 @@ def test_mirror_of_a_start_is_a_start(env, rollouts):
     np.testing.assert_array_equal(side[n:], -side[:n])
     _check_support(env, scene, np.asarray(s0.data.qpos), block, pad, side)
     pts = np.asarray(s0.obs["point_cloud"])
-    key = lambda p: np.lexsort(np.round(p, 5).T[::-1])
     for i in range(n):
-        ref, pm = pts[i] * REFLECT, pts[n + i]
-        np.testing.assert_allclose(ref[key(ref)], pm[key(pm)], atol=1e-5)
+        assert_same_point_set(pts[i] * REFLECT, pts[n + i], atol=1e-5)
 
 
 @pytest.mark.slow  # needs the module's expert-rollout compile; CI runs it with the slow suite
@@ -210,9 +222,9 @@ def test_jit_reset_step_shapes_no_nan(env, rollouts):
         assert all(np.all(np.isfinite(np.asarray(v))) for v in s.obs.values())
         assert np.all(np.isfinite(np.asarray(s.data.qpos)))
     assert not np.any(np.asarray(s0.info["success"])) and not np.any(np.asarray(s0.reward))
-    assert traj["action"].shape == (b, T_TEST, 14) and traj["success"].shape == (b, T_TEST)
+    assert traj["action"].shape[::2] == (b, 14) and traj["success"].shape == traj["action"].shape[:2]
     assert np.all(np.isfinite(traj["action"])) and np.all(np.isfinite(traj["qpos"]))
-    assert np.all(np.asarray(final.info["step"]) == T_TEST)
+    assert np.all(np.asarray(final.info["step"]) == traj["action"].shape[1])
     assert not np.any(np.asarray(final.metrics["nan_action"]))
 
 
@@ -317,37 +329,24 @@ def test_expert_mirror_equivariance(env, rollouts):
     assert block_err < 5e-3
 
 
-@pytest.fixture(scope="module")
-def run_starts():
-    """``run(starts [50]) -> (success [50], side [50])``: the expert for its whole script
-    from given initial states of a qpos-only env (same model and expert as the faithful
-    variant's; only ``init`` differs). The 200-seed success rate is in tests/test_all_tasks.py."""
-    env = make_env(TASK, side="both", obs=("qpos",))  # success does not depend on the observations
-    expert = make_expert(env)
-    roll = make_rollout(env, expert, length=expert.horizon, obs=False)
-
-    @jax.jit
-    def run(starts):
-        final, _ = chunked_vmap(roll.from_state, chunk=25)(starts)  # <= 32 per vmap: see _batching.py
-        return final.info["success"], final.info["side"]
-
-    return env, run
-
-
 @pytest.mark.slow
-def test_faithful_variant_expert_succeeds(run_starts):
+def test_faithful_variant_expert_succeeds(episodes):
     """robotwin_faithful=True: 50 always-left starts, run by the same expert in the same
-    model (the faithful scene differs from the default one only in how it draws starts)."""
-    env, run = run_starts
-    env_f = make_env(TASK, robotwin_faithful=True, obs=("qpos",))
+    model through the shared episodes' compiled program (the faithful scene differs from the
+    default one only in how it draws starts)."""
+    env = episodes.env
+    env_f = make_env(TASK, robotwin_faithful=True, obs=env.config.obs)
     assert dataclasses.replace(env_f.scene, side="both", robotwin_faithful=False) == env.scene
     keys = jax.random.split(jax.random.key(3), 50)
     # the same start pytree (shapes, dtypes, weak types) as the default env's: no recompile
     types = lambda e: [(a.shape, a.dtype, a.weak_type)
                        for a in jax.tree.leaves(jax.eval_shape(jax.vmap(e.reset), keys))]
     assert types(env_f) == types(env)
-    s0 = jax.jit(jax.vmap(env_f.reset))(keys)
-    success, side = (np.asarray(v) for v in run(s0))
+    reset = jax.jit(jax.vmap(env_f.reset))
+    n = N_SEEDS  # the program's batch
+    final = [episodes.run(reset(keys[i : i + n]))[0] for i in range(0, len(keys), n)]
+    success = np.concatenate([np.asarray(f.info["success"]) for f in final])
+    side = np.concatenate([np.asarray(f.info["side"]) for f in final])
     print(f"\nfaithful variant: success {success.sum()}/{success.size}")
     assert np.all(side == 1.0)
     assert success.mean() >= 0.95

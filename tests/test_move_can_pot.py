@@ -2,9 +2,11 @@
 symmetry, jitted reset/step, success predicate, scripted expert (success on both sides
 and mirror equivariance).
 
-One env (the task's default observations: qpos and a 64-point cloud) and one jitted
-batched rollout are built once per module and shared: 4 seeds plus their mirror images
-(so both sides are always covered), run for a few steps past the end of the release.
+The slow expert tests share one compiled rollout program per module, the task's
+``task_rollouts.expert_episodes``: the expert from 50 seeded starts and from the mirror
+images of the first 25 (so both sides are always covered), run 10 steps past the end of
+its script. The same episodes serve the generic expert check (success rate, shapes, ``S`` on
+the recorded demos) and this file's task-specific checks.
 """
 
 import dataclasses
@@ -22,11 +24,10 @@ from equibim_jax.experts.move_can_pot import CanExpertConfig
 from equibim_jax.tasks import make_env, make_scene, task_entry, task_names, task_options
 from equibim_jax.tasks.move_can_pot import MoveCanPot
 
-from task_rollouts import collides, expert_rollouts
+from task_rollouts import N_PAIRS, assert_same_point_set, collides, check_expert_episodes, expert_episodes
 
 TASK = "move_can_pot"
-N_SEEDS = 4
-T_TEST = 210  # the script's release ends at step 200 (CanExpertConfig().release_end)
+N_SEEDS = N_PAIRS  # starts kept whole in the shared expert episodes, each with its mirror image
 REFLECT = np.array([1.0, -1.0, 1.0])
 
 
@@ -36,9 +37,22 @@ def env():
 
 
 @pytest.fixture(scope="module")
-def rollouts(env):
-    """(initial states [2N], final states [2N], traj) for N seeds then their N mirror images."""
-    return expert_rollouts(env, N_SEEDS, T_TEST, seed=11)
+def episodes():
+    """The task's shared expert episodes (``task_rollouts.expert_episodes``): 50 seeded starts,
+    the first N_SEEDS of them also from their mirror images, one compiled program."""
+    return expert_episodes(TASK)
+
+
+@pytest.fixture(scope="module")
+def rollouts(episodes):
+    """(initial states [2N], final states [2N], traj) for N starts then their N mirror images."""
+    return episodes.s0, episodes.final, episodes.traj
+
+
+@pytest.mark.slow  # the expert-rollout compile; CI runs it with the slow suite
+def test_expert_generic_checks(episodes):
+    """Success rate over 50 starts, shapes, and S on the recorded demos (``task_rollouts``)."""
+    check_expert_episodes(episodes)
 
 
 def _poses(env, qpos):
@@ -169,10 +183,8 @@ def test_mirror_of_a_start_is_a_start(env, rollouts):
     q = np.asarray(s0.data.qpos)[:, : env.info.nq_robot]
     np.testing.assert_allclose(q, np.broadcast_to(env.home_qpos[: env.info.nq_robot], q.shape), atol=1e-6)
     pts = np.asarray(s0.obs["point_cloud"])
-    key = lambda p: np.lexsort(np.round(p, 5).T[::-1])
     for i in range(n):
-        ref, pm = pts[i] * REFLECT, pts[n + i]
-        np.testing.assert_allclose(ref[key(ref)], pm[key(pm)], atol=1e-5)
+        assert_same_point_set(pts[i] * REFLECT, pts[n + i], atol=1e-5)
 
 
 @pytest.mark.slow  # needs the module's expert-rollout compile; CI runs it with the slow suite
@@ -188,9 +200,9 @@ def test_jit_reset_step_shapes_no_nan(env, rollouts):
         assert all(np.all(np.isfinite(np.asarray(v))) for v in s.obs.values())
         assert np.all(np.isfinite(np.asarray(s.data.qpos)))
     assert not np.any(np.asarray(s0.info["success"])) and not np.any(np.asarray(s0.reward))
-    assert traj["action"].shape == (b, T_TEST, 14) and traj["success"].shape == (b, T_TEST)
+    assert traj["action"].shape[::2] == (b, 14) and traj["success"].shape == traj["action"].shape[:2]
     assert np.all(np.isfinite(traj["action"])) and np.all(np.isfinite(traj["qpos"]))
-    assert np.all(np.asarray(final.info["step"]) == T_TEST)
+    assert np.all(np.asarray(final.info["step"]) == traj["action"].shape[1])
     assert not np.any(np.asarray(final.metrics["nan_action"]))
 
 

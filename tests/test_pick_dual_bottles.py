@@ -1,13 +1,15 @@
 """pick_dual_bottles: task registry and option errors (``robotwin_faithful`` included),
 model (mirror-symmetric by default, two different bottles with ``robotwin_faithful``),
 initial distribution and its mirror symmetry, success predicate, jitted reset/step, the
-two-arm scripted expert (success, mirror equivariance, arms apart), 200-seed success rate
+two-arm scripted expert (success, mirror equivariance, arms apart), 50-start success rate
 and the faithful variant's expert.
 
-The default tests compile no MJX rollout. The slow ones share one jitted batched rollout
-(module fixture): 4 seeds plus their mirror images, in a qpos-only env, run for a few
-steps past the end of the script; the 200-seed rate and the faithful variant compile
-their own.
+The default tests compile no MJX rollout. The slow expert tests share one compiled rollout
+program per module, the task's ``task_rollouts.expert_episodes``: the expert from 50 seeded
+starts and from the mirror images of the first 25, run 10 steps past the end of its script.
+The same episodes serve the generic expert check (success rate, shapes, ``S`` on the
+recorded demos) and this file's task-specific checks. The faithful variant (a different
+model) compiles its own.
 """
 
 import jax
@@ -22,11 +24,10 @@ from equibim_jax.experts.pick_dual_bottles import DualBottlesExpertConfig
 from equibim_jax.tasks import make_env, make_scene, task_entry, task_names, task_options
 from equibim_jax.tasks.pick_dual_bottles import PickDualBottles
 
-from task_rollouts import collides, expert_rollouts
+from task_rollouts import N_PAIRS, collides, check_expert_episodes, expert_episodes
 
 TASK = "pick_dual_bottles"
-N_SEEDS = 4
-T_TEST = DualBottlesExpertConfig().horizon + 6  # the script ends at step 119
+N_SEEDS = N_PAIRS  # starts kept whole in the shared expert episodes, each with its mirror image
 REFLECT = np.array([1.0, -1.0, 1.0])
 
 
@@ -41,9 +42,22 @@ def env_faithful():
 
 
 @pytest.fixture(scope="module")
-def rollouts(env):
-    """(initial states [2N], final states [2N], traj) for N seeds then their N mirror images."""
-    return expert_rollouts(env, N_SEEDS, T_TEST, seed=11)
+def episodes():
+    """The task's shared expert episodes (``task_rollouts.expert_episodes``): 50 seeded starts,
+    the first N_SEEDS of them also from their mirror images, one compiled program."""
+    return expert_episodes(TASK)
+
+
+@pytest.fixture(scope="module")
+def rollouts(episodes):
+    """(initial states [2N], final states [2N], traj) for N starts then their N mirror images."""
+    return episodes.s0, episodes.final, episodes.traj
+
+
+@pytest.mark.slow  # the expert-rollout compile; CI runs it with the slow suite
+def test_expert_generic_checks(episodes):
+    """Success rate over 50 starts, shapes, and S on the recorded demos (``task_rollouts``)."""
+    check_expert_episodes(episodes)
 
 
 # ---------------------------------------------------------------------------- registry
@@ -282,9 +296,9 @@ def test_jit_reset_step_shapes_no_nan(env, rollouts):
         assert all(np.all(np.isfinite(np.asarray(v))) for v in s.obs.values())
         assert np.all(np.isfinite(np.asarray(s.data.qpos)))
     assert not np.any(np.asarray(s0.info["success"])) and not np.any(np.asarray(s0.reward))
-    assert traj["action"].shape == (b, T_TEST, 14) and traj["success"].shape == (b, T_TEST)
+    assert traj["action"].shape[::2] == (b, 14) and traj["success"].shape == traj["action"].shape[:2]
     assert np.all(np.isfinite(traj["action"])) and np.all(np.isfinite(traj["qpos"]))
-    assert np.all(np.asarray(final.info["step"]) == T_TEST)
+    assert np.all(np.asarray(final.info["step"]) == traj["action"].shape[1])
     assert not np.any(np.asarray(final.metrics["nan_action"]))
 
 

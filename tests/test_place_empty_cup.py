@@ -1,9 +1,11 @@
 """place_empty_cup: task registry, initial distribution, success predicate, scripted expert
 (success and mirror equivariance).
 
-One jitted batched rollout is compiled once per session and shared: 4 seeds plus their
-mirror images (so both sides are always covered), run for a bit more than the time the
-script needs to release the cup.
+The slow expert tests share one compiled rollout program, the task's
+``task_rollouts.expert_episodes``: the expert from 50 seeded starts and from the mirror
+images of the first 25 (so both sides are always covered), run 10 steps past the end of
+its script. The same episodes serve the generic expert check (success rate, shapes, ``S`` on
+the recorded demos), the point-cloud check and this file's expert checks.
 """
 
 import functools
@@ -15,12 +17,12 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
-from equibim_jax.experts import make_expert, make_rollout
 from equibim_jax.tasks import make_env, make_scene, task_entry, task_names, task_options
 from equibim_jax.tasks.place_empty_cup import PlaceEmptyCup, held_opening
 
-N_SEEDS = 4
-T_TEST = 205  # the script releases the cup at step ~196 (see test_expert_success_both_sides)
+from task_rollouts import N_PAIRS, assert_same_point_set, check_expert_episodes, expert_episodes
+
+N_SEEDS = N_PAIRS  # starts kept whole in the shared expert episodes, each with its mirror image
 
 
 @functools.lru_cache(maxsize=None)
@@ -28,27 +30,17 @@ def _env(side="both"):
     return make_env("place_empty_cup", side=side, obs=("qpos",))
 
 
-@functools.lru_cache(maxsize=None)
-def _rollouts():
-    """(initial states [2N], traj) for N seeds followed by their N mirror images."""
-    env = _env()
-    expert = make_expert(env)
-    roll = make_rollout(env, expert, length=T_TEST, obs=False)
+@pytest.fixture(scope="module")
+def episodes():
+    """The task's shared expert episodes (``task_rollouts.expert_episodes``): 50 seeded starts,
+    the first N_SEEDS of them also from their mirror images, one compiled program."""
+    return expert_episodes("place_empty_cup")
 
-    @jax.jit
-    def starts(keys):
-        s = jax.vmap(env.reset)(keys)
-        sm = jax.vmap(env.mirror_state)(s)
-        return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), s, sm)
 
-    @jax.jit
-    def run(s0):
-        final, traj = jax.vmap(roll.from_state)(s0)
-        return final.info["success"], traj
-
-    s0 = starts(jax.random.split(jax.random.key(11), N_SEEDS))
-    success, traj = run(s0)
-    return s0, np.asarray(success), jax.tree.map(np.asarray, traj)
+@pytest.mark.slow  # the expert-rollout compile; CI runs it with the slow suite
+def test_expert_generic_checks(episodes):
+    """Success rate over 50 starts, shapes, and S on the recorded demos (``task_rollouts``)."""
+    check_expert_episodes(episodes)
 
 
 # ---------------------------------------------------------------------------- registry
@@ -117,22 +109,20 @@ def test_initial_distribution():
         assert np.all(np.asarray(inf["side"]) == sgn)
 
 
-@pytest.mark.slow  # compiles MJX programs; the default suite is at its time budget
-def test_point_cloud_sees_cup_and_coaster_and_mirrors():
-    env = make_env("place_empty_cup", side="both", obs=("qpos", "point_cloud"), n_points=64)
-    s = jax.jit(env.reset)(jax.random.key(5))
-    sm = jax.jit(env.mirror_state)(s)
-    pts, pts_m = np.asarray(s.obs["point_cloud"]), np.asarray(sm.obs["point_cloud"])
-    cup, coaster = (np.asarray(v) for v in env.scene.positions_from_qpos(s.data.qpos, env))
+@pytest.mark.slow  # needs the shared expert episodes' compile; CI runs it with the slow suite
+def test_point_cloud_sees_cup_and_coaster_and_mirrors(episodes):
+    """A start's 64-point cloud (the shared episodes' first start) and its mirror image's."""
+    env, s0 = episodes.env, episodes.s0
+    assert env.config.n_points == 64
+    pts, pts_m = np.asarray(s0.obs["point_cloud"][0]), np.asarray(s0.obs["point_cloud"][N_SEEDS])
+    cup, coaster = (np.asarray(v) for v in env.scene.positions_from_qpos(s0.data.qpos[0], env))
     lo, hi = (np.asarray(c) for c in env.crop)
     assert np.all((pts >= lo - 1e-6) & (pts <= hi + 1e-6))
     near = lambda c, r: np.linalg.norm(pts[:, :2] - c[:2], axis=1) < r
     assert near(cup, 0.05).sum() >= 8 and near(coaster, 0.06).sum() >= 8
     assert np.all(near(cup, 0.05) | near(coaster, 0.06))  # nothing else at the arms' rest pose
     # The mirrored state's cloud is the reflected cloud (as a set of points; the mirror plane is y = 0).
-    key = lambda p: np.lexsort(np.round(p, 5).T[::-1])
-    ref = pts * np.array([1.0, -1.0, 1.0])
-    np.testing.assert_allclose(ref[key(ref)], pts_m[key(pts_m)], atol=1e-5)
+    assert_same_point_set(pts * np.array([1.0, -1.0, 1.0]), pts_m, atol=1e-5)
 
 
 # ---------------------------------------------------------------------------- predicate
@@ -187,16 +177,17 @@ def test_success_predicate_cases():
 
 
 # ---------------------------------------------------------------------------- expert
-@pytest.mark.slow  # compiles MJX programs; the default suite is at its time budget
-def test_expert_success_both_sides():
-    s0, success, traj = _rollouts()
+@pytest.mark.slow  # needs the shared expert episodes' compile; CI runs it with the slow suite
+def test_expert_success_both_sides(episodes):
+    s0, traj = episodes.s0, episodes.traj
+    success = np.asarray(episodes.final.info["success"])
     side = np.asarray(s0.info["side"])
     assert set(side.tolist()) == {-1.0, 1.0}
     first = np.where(success, traj["success"].argmax(axis=1), -1)
     print(f"\nexpert success {success.sum()}/{success.size}, sides {side}, first success step {first}")
     assert success.sum() >= success.size - 1
     # the grasp held by friction: the cup rose by ~the carry lift during the transfer
-    env = _env()
+    env = episodes.env
     a = env.scene._ids(env)["cup_qadr"]
     lift = traj["qpos"][:, :, a + 2].max(axis=1) - np.asarray(s0.data.qpos)[:, a + 2]
     assert np.all(lift > 0.04), lift
@@ -204,11 +195,10 @@ def test_expert_success_both_sides():
     assert np.all(np.isfinite(traj["action"]))
 
 
-@pytest.mark.slow  # compiles MJX programs; the default suite is at its time budget
-def test_expert_mirror_equivariance():
+@pytest.mark.slow  # needs the shared expert episodes' compile; CI runs it with the slow suite
+def test_expert_mirror_equivariance(episodes):
     """Mirrored start -> mirrored actions (to IK round-off) and mirrored cup trajectory."""
-    env = _env()
-    s0, _, traj = _rollouts()
+    env, traj = episodes.env, episodes.traj
     n = N_SEEDS
     acts, acts_m = traj["action"][:n], traj["action"][n:]
     expect = np.asarray(jax.vmap(jax.vmap(env.action_symmetry))(jnp.asarray(acts)))

@@ -2,8 +2,11 @@
 symmetry, initial distribution, success predicate, scripted expert (success on both sides
 and mirror equivariance).
 
-One jitted batched rollout is compiled once per module (module-scoped fixture) and
-shared: N_SEEDS seeds plus their mirror images, run for a little longer than the script.
+The slow expert tests share one compiled rollout program per module, the task's
+``task_rollouts.expert_episodes``: the expert from 50 seeded starts and from the mirror
+images of the first 25 (so both sides are always covered), run 10 steps past the end of
+its script. The same episodes serve the generic expert check (success rate, shapes, ``S`` on
+the recorded demos) and this file's task-specific checks.
 """
 
 import math
@@ -21,10 +24,9 @@ from equibim_jax.sim import robots
 from equibim_jax.tasks import make_env, make_scene, task_entry, task_names, task_options
 from equibim_jax.tasks.press_stapler import PressStapler
 
-from task_rollouts import expert_rollouts
+from task_rollouts import N_PAIRS, check_expert_episodes, expert_episodes
 
-N_SEEDS = 4
-T_TEST = 135  # a little longer than the script (StaplerExpertConfig().horizon = 125 steps)
+N_SEEDS = N_PAIRS  # starts kept whole in the shared expert episodes, each with its mirror image
 MIRROR_POSE = np.array([1.0, -1.0, -1.0])  # (x, y, yaw) under the mirror
 
 
@@ -34,10 +36,22 @@ def env():
 
 
 @pytest.fixture(scope="module")
-def rollouts(env):
-    """(initial states [2N], final states [2N], traj) for N seeds then their N mirror images."""
-    assert make_expert(env).horizon < T_TEST
-    return expert_rollouts(env, N_SEEDS, T_TEST, seed=3)
+def episodes():
+    """The task's shared expert episodes (``task_rollouts.expert_episodes``): 50 seeded starts,
+    the first N_SEEDS of them also from their mirror images, one compiled program."""
+    return expert_episodes("press_stapler")
+
+
+@pytest.fixture(scope="module")
+def rollouts(episodes):
+    """(initial states [2N], final states [2N], traj) for N starts then their N mirror images."""
+    return episodes.s0, episodes.final, episodes.traj
+
+
+@pytest.mark.slow  # the expert-rollout compile; CI runs it with the slow suite
+def test_expert_generic_checks(episodes):
+    """Success rate over 50 starts, shapes, and S on the recorded demos (``task_rollouts``)."""
+    check_expert_episodes(episodes)
 
 
 def _valid_start(env, qpos, side):
@@ -177,15 +191,15 @@ def test_reset_and_step_shapes_no_nan_success_false_at_reset(env, rollouts):
     b = 2 * N_SEEDS
     assert s0.obs["qpos"].shape == (b, 14) and s0.obs["ee"].shape == (b, 2 * (3 + 6 + 1))
     assert final.obs["qpos"].shape == (b, 14) and final.reward.shape == (b,)
-    assert traj["action"].shape == (b, T_TEST, env.action_size)
-    assert traj["qpos"].shape == (b, T_TEST, env.mj_model.nq)
+    assert traj["action"].shape[::2] == (b, env.action_size)
+    assert traj["qpos"].shape == (*traj["action"].shape[:2], env.mj_model.nq)
     for tree in (s0, final):
         for leaf in jax.tree.leaves((tree.obs, tree.metrics, tree.data.qpos, tree.data.qvel)):
             assert np.all(np.isfinite(np.asarray(leaf)))
     assert np.all(np.isfinite(traj["qpos"])) and np.all(np.isfinite(traj["action"]))
     assert not np.any(np.asarray(s0.info["success"]))
     assert not np.any(np.asarray(s0.metrics["shut"]))
-    assert np.all(np.asarray(final.info["step"]) == T_TEST)
+    assert np.all(np.asarray(final.info["step"]) == traj["action"].shape[1])
     assert np.all(np.asarray(final.metrics["nan_action"]) == 0)
 
 
@@ -248,7 +262,7 @@ def test_expert_presses_the_plate_shut_on_both_sides(env, rollouts):
     assert np.all(np.abs(angle[:, -1] - env.scene.open_angle) < 0.02)
     # the stapler was pressed, not shoved: its base moved little
     assert np.all(drift[:, :2] < 0.01) and np.all(drift[:, 2] < 0.1)
-    acts = traj["action"].reshape(2 * N_SEEDS, T_TEST, 2, -1)
+    acts = traj["action"].reshape(2 * N_SEEDS, traj["action"].shape[1], 2, -1)
     moved = np.abs(acts[..., :-1] - acts[:, :1, :, :-1]).max(axis=(1, 3))  # [B, 2]
     active = np.where(side > 0, 0, 1)
     assert np.all(moved[np.arange(len(side)), active] > 0.1)
@@ -271,13 +285,18 @@ def test_expert_mirror_equivariance(env, rollouts):
     # Until the retreat begins the hinge is either at rest or pushed slowly by the pads.
     # During the retreat the spring snaps the plate open at up to ~0.05 rad per control
     # step, so the two simulations' float32 contact round-off shows up as a small timing
-    # difference; the tolerance there is 0.02 rad (2 mm at the press point).
+    # difference; the tolerance there is 0.02 rad (2 mm at the press point). Before the
+    # retreat the median pair must agree to 1e-4 rad (an asymmetry in the model or the
+    # expert would shift every pair); over N pairs the round-off of the pads sliding on
+    # the plate grows in a few, so the worst pair is held to 2e-3 rad (0.2 mm).
     t_retreat = sum(StaplerExpertConfig().durations[:-1])
     err_press, err_all = angle_err[:t_retreat].max(), angle_err.max()
+    per_pair = np.abs(angle[n:] - angle[:n])[:, :t_retreat].max(axis=1)  # [N]
     print(f"\nequivariance: max |a_mirror - S a| = {act_err:.2e} rad; stapler (x, y, yaw) error "
-          f"{pose_err}; hinge angle error {err_press:.2e} rad before the retreat, {err_all:.2e} "
-          f"rad over all {T_TEST} steps")
+          f"{pose_err}; hinge angle error {err_press:.2e} rad before the retreat (median pair "
+          f"{np.median(per_pair):.2e}), {err_all:.2e} "
+          f"rad over all {traj['action'].shape[1]} steps")
     assert np.abs(acts_m - acts).max() > 0.1  # the other arm acted: the check is not vacuous
     assert act_err < 1e-3
     assert np.all(pose_err < 1e-3)
-    assert err_press < 1e-3 and err_all < 0.02
+    assert np.median(per_pair) < 1e-4 and err_press < 2e-3 and err_all < 0.02
