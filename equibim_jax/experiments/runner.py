@@ -503,14 +503,11 @@ def run_experiment(exp: Experiment, out_dir: str | Path | None = None, progress:
     out = root / exp.name
 
     def previous():  # read after the cells ran: the table as it is now, not as it was at the start
-        if not (out / "results.json").exists():
-            return None
-        try:
-            return json.loads((out / "results.json").read_text())
-        except json.JSONDecodeError:
-            raise ConfigError(f"{out / 'results.json'} is not valid JSON (move it away)") from None
+        return _read_results(out / "results.json")
 
     previous()  # a broken results.json stops the run before any work
+    for inc in _included_names(experiment_path(exp.source)):
+        _read_results(root / inc / "results.json")
     t0 = time.perf_counter()
     cells, envs = {}, {}
     for cell in tqdm(exp.cells, desc=f"experiment {exp.name}", unit="cell", disable=not progress):
@@ -518,17 +515,24 @@ def run_experiment(exp: Experiment, out_dir: str | Path | None = None, progress:
         envs.clear()  # envs are cheap to rebuild and hold device memory
     prev = previous()
     configs = {c.name: _cell_config(c) for c in exp.cells}
+    full = load_experiment(exp.source, quick=exp.quick)
+    full_cfg = {c.name: _cell_config(c) for c in full.cells}
+    # The previous table of this experiment, then those of the experiments it includes
+    # (``table2`` shows ``table1``'s cells): a cell comes from the first that holds it.
     kept = {}
-    if prev is not None:
-        full = load_experiment(exp.source, quick=exp.quick)
-        kept = merge_previous(prev, exp.name, exp.quick, list(exp.arms),
-                              {c.name: _cell_config(c) for c in full.cells}, set(cells))
-    order = [c.name for c in (full.cells if prev is not None else exp.cells)]
+    sources = [(exp.name, prev)] + [(inc, _read_results(root / inc / "results.json"))
+                                    for inc in _included_names(experiment_path(exp.source))]
+    for name, old in sources:
+        if old is None:
+            continue
+        more = merge_previous(old, name, exp.quick, list(exp.arms), full_cfg, set(cells) | set(kept))
+        legacy = "commands" not in old  # one command made the whole old table
+        for v in more.values():  # cells from before per-cell commands were recorded; else unknown
+            v["cell"].setdefault("command", old.get("command", "") if legacy else "")
+        kept.update(more)
+    order = [c.name for c in full.cells]
     for c in cells.values():
         c["command"] = command
-    legacy = prev is not None and "commands" not in prev  # one command made the whole old table
-    for v in kept.values():  # cells from before per-cell commands were recorded; else unknown
-        v["cell"].setdefault("command", prev.get("command", "") if legacy else "")
     all_cells = {**{k: v["cell"] for k, v in kept.items()}, **cells}
     all_cells = {n: all_cells[n] for n in order if n in all_cells}
     configs = {**{k: v["config"] for k, v in kept.items()}, **configs}
@@ -547,6 +551,36 @@ def run_experiment(exp: Experiment, out_dir: str | Path | None = None, progress:
     atomic_write_bytes(out / "table.md", tables.markdown(results).encode())
     tables.plot(results, out / "plot.png")
     return results
+
+
+def _read_results(path: Path) -> dict | None:
+    """A ``results.json`` as a dict, ``None`` if it does not exist.
+
+    Raises:
+      ConfigError: the file is not valid JSON.
+    """
+    if not path.exists():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError:
+        raise ConfigError(f"{path} is not valid JSON (move it away)") from None
+
+
+def _included_names(path: Path) -> list[str]:
+    """Names of the experiments an experiment file includes, nearest first (``include``
+    chains are followed; cycles are caught by :func:`load_experiment`)."""
+    names, seen = [], {path.resolve()}
+    inc = _read(path).get("include")
+    while inc is not None:
+        ip = experiment_path(inc)
+        if ip.resolve() in seen:
+            break
+        seen.add(ip.resolve())
+        idata = _read(ip)
+        names.append(idata.get("name", ip.stem))
+        inc = idata.get("include")
+    return names
 
 
 def _cell_config(c: Cell) -> dict:
