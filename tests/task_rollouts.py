@@ -6,6 +6,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from equibim_jax._batching import chunked_vmap
 from equibim_jax.experts import make_expert, make_rollout
@@ -119,6 +120,33 @@ def check_expert_episodes(ep: ExpertEpisodes, min_rate: float = 0.95) -> None:
     ok = np.asarray(ep.final.info["success"])
     np.testing.assert_array_equal(ok[n:], ok[:n])  # same outcomes
     assert np.abs(act_m - act).max() > 0.05  # the other arm acted: the check is not vacuous
+
+
+def expert_fixtures(task: str, **options):
+    """The two module-level pieces every task test file needs, defined once here:
+    ``episodes`` (a module-scoped fixture: ``expert_episodes(task, **options)``) and
+    ``test_expert_generic_checks`` (slow: ``check_expert_episodes`` on those episodes).
+
+    Usage, at module level of ``tests/test_<task>.py``::
+
+        episodes, test_expert_generic_checks = expert_fixtures("click_bell")
+
+    The test function carries ``expert_task = task``, which ``test_all_tasks`` checks.
+    """
+
+    @pytest.fixture(scope="module")
+    def episodes():
+        """The task's shared expert episodes: 50 seeded starts, the first 25 also from their
+        mirror images, one compiled program (``expert_episodes``)."""
+        return expert_episodes(task, **options)
+
+    @pytest.mark.slow  # the expert-rollout compile; CI runs it with the slow suite
+    def test_expert_generic_checks(episodes):
+        """Success rate over 50 starts, shapes, and S on the recorded demos (``check_expert_episodes``)."""
+        check_expert_episodes(episodes)
+
+    test_expert_generic_checks.expert_task = task
+    return episodes, test_expert_generic_checks
 
 
 def run_starts(ep: ExpertEpisodes, s0):

@@ -15,6 +15,7 @@ episodes as its task-specific expert checks; this file runs it for the other tas
 that each task file does.
 """
 
+import importlib
 from pathlib import Path
 
 import jax
@@ -94,10 +95,15 @@ def own_test_file(task: str) -> Path:
 @pytest.mark.parametrize("task", [t for t in TASKS if own_test_file(t).is_file()])
 def test_own_test_file_runs_the_generic_expert_check(task):
     """A task with its own test file runs the generic expert check there, on the episodes its
-    own expert checks use (one compiled program per task), instead of here."""
-    text = own_test_file(task).read_text()
-    assert "expert_episodes(" in text and "check_expert_episodes(" in text, (
-        f"{own_test_file(task).name} must call task_rollouts.expert_episodes and check_expert_episodes")
+    own expert checks use (one compiled program per task), instead of here: the module holds
+    ``task_rollouts.expert_fixtures(task)``'s fixture and slow test under their own names."""
+    mod = importlib.import_module(own_test_file(task).stem)
+    check = getattr(mod, "test_expert_generic_checks", None)
+    assert getattr(check, "expert_task", None) == task, (
+        f"{own_test_file(task).name} must define `episodes, test_expert_generic_checks = "
+        f"expert_fixtures({task!r})` (task_rollouts)")
+    assert any(m.name == "slow" for m in getattr(check, "pytestmark", []))
+    assert getattr(mod, "episodes", None) is not None
 
 
 @pytest.mark.slow

@@ -25,7 +25,7 @@ from equibim_jax.experts.banana_handover import BananaExpertConfig
 from equibim_jax.tasks import make_env, make_scene, task_entry, task_names, task_options
 from equibim_jax.tasks.banana_handover import BananaHandover
 
-from task_rollouts import check_expert_episodes, collides, expert_episodes, run_starts
+from task_rollouts import collides, expert_fixtures, run_starts
 
 TASK = "banana_handover"
 CFG = BananaExpertConfig()
@@ -270,17 +270,7 @@ N_MIRRORED = 4  # starts with mirrored_orientation=True (half on each side)
 N_PERTURBED = 16  # right-side starts with asymmetric_quality=1.0
 
 
-@pytest.fixture(scope="module")
-def episodes():
-    """The task's shared expert episodes (``task_rollouts.expert_episodes``): 50 seeded starts,
-    the first 25 also from their mirror images, one compiled program."""
-    return expert_episodes(TASK)
-
-
-@pytest.mark.slow
-def test_expert_generic_checks(episodes):
-    """Success rate over 50 starts, shapes, and S on the recorded demos (``task_rollouts``)."""
-    check_expert_episodes(episodes)
+episodes, test_expert_generic_checks = expert_fixtures(TASK)
 
 
 @pytest.fixture(scope="module")

@@ -21,7 +21,7 @@ from equibim_jax.experts.chicken_hook import make_expert as chicken_expert
 from equibim_jax.tasks import make_env, make_scene, task_entry, task_names
 from equibim_jax.tasks.chicken_hook import ChickenHook
 
-from task_rollouts import check_expert_episodes, collides, expert_episodes, run_starts
+from task_rollouts import collides, expert_fixtures, run_starts
 
 TASK = "chicken_hook"
 
@@ -237,17 +237,7 @@ class _Flipped(ChickenHook):
         return -super().draw_side(key)
 
 
-@pytest.fixture(scope="module")
-def episodes():
-    """The task's shared expert episodes (``task_rollouts.expert_episodes``): 50 seeded starts,
-    the first 25 also from their mirror images, one compiled program."""
-    return expert_episodes(TASK)
-
-
-@pytest.mark.slow
-def test_expert_generic_checks(episodes):
-    """Success rate over 50 starts, shapes, and S on the recorded demos (``task_rollouts``)."""
-    check_expert_episodes(episodes)
+episodes, test_expert_generic_checks = expert_fixtures(TASK)
 
 
 @pytest.fixture(scope="module")

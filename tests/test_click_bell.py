@@ -21,7 +21,7 @@ from equibim_jax.sim import robots
 from equibim_jax.tasks import make_env, make_scene, task_entry, task_names, task_options
 from equibim_jax.tasks.click_bell import ClickBell
 
-from task_rollouts import N_PAIRS, check_expert_episodes, expert_episodes
+from task_rollouts import N_PAIRS, expert_fixtures
 
 N_SEEDS = N_PAIRS  # starts kept whole in the shared expert episodes, each with its mirror image
 MIRROR_Y = np.array([1.0, -1.0])
@@ -32,23 +32,13 @@ def env():
     return make_env("click_bell", side="both", obs=("qpos", "ee"))
 
 
-@pytest.fixture(scope="module")
-def episodes():
-    """The task's shared expert episodes (``task_rollouts.expert_episodes``): 50 seeded starts,
-    the first N_SEEDS of them also from their mirror images, one compiled program."""
-    return expert_episodes("click_bell")
+episodes, test_expert_generic_checks = expert_fixtures("click_bell")
 
 
 @pytest.fixture(scope="module")
 def rollouts(episodes):
     """(initial states [2N], final states [2N], traj) for N starts then their N mirror images."""
     return episodes.s0, episodes.final, episodes.traj
-
-
-@pytest.mark.slow  # the expert-rollout compile; CI runs it with the slow suite
-def test_expert_generic_checks(episodes):
-    """Success rate over 50 starts, shapes, and S on the recorded demos (``task_rollouts``)."""
-    check_expert_episodes(episodes)
 
 
 def _valid_start(env, qpos, side):

@@ -26,7 +26,7 @@ from equibim_jax.sim.robots import robot_info
 from equibim_jax.tasks import make_env, make_scene, task_entry, task_names, task_options
 from equibim_jax.tasks.drumstick_hook import DrumstickHook
 
-from task_rollouts import check_expert_episodes, collides, expert_episodes, run_starts
+from task_rollouts import collides, expert_fixtures, run_starts
 
 TASK = "drumstick_hook"
 CFG = DrumstickExpertConfig()
@@ -290,17 +290,7 @@ def test_rack_holds_a_stick_by_gravity_and_friction(env):
 
 
 # ---------------------------------------------------------------------------- expert (slow)
-@pytest.fixture(scope="module")
-def episodes():
-    """The task's shared expert episodes (``task_rollouts.expert_episodes``): 50 seeded starts,
-    the first 25 also from their mirror images, one compiled program."""
-    return expert_episodes(TASK)
-
-
-@pytest.mark.slow
-def test_expert_generic_checks(episodes):
-    """Success rate over 50 starts, shapes, and S on the recorded demos (``task_rollouts``)."""
-    check_expert_episodes(episodes)
+episodes, test_expert_generic_checks = expert_fixtures(TASK)
 
 
 @pytest.fixture(scope="module")

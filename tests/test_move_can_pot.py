@@ -24,7 +24,7 @@ from equibim_jax.experts.move_can_pot import CanExpertConfig
 from equibim_jax.tasks import make_env, make_scene, task_entry, task_names, task_options
 from equibim_jax.tasks.move_can_pot import MoveCanPot
 
-from task_rollouts import N_PAIRS, assert_same_point_set, collides, check_expert_episodes, expert_episodes
+from task_rollouts import N_PAIRS, assert_same_point_set, collides, expert_fixtures
 
 TASK = "move_can_pot"
 N_SEEDS = N_PAIRS  # starts kept whole in the shared expert episodes, each with its mirror image
@@ -36,23 +36,13 @@ def env():
     return make_env(TASK, side="both")
 
 
-@pytest.fixture(scope="module")
-def episodes():
-    """The task's shared expert episodes (``task_rollouts.expert_episodes``): 50 seeded starts,
-    the first N_SEEDS of them also from their mirror images, one compiled program."""
-    return expert_episodes(TASK)
+episodes, test_expert_generic_checks = expert_fixtures(TASK)
 
 
 @pytest.fixture(scope="module")
 def rollouts(episodes):
     """(initial states [2N], final states [2N], traj) for N starts then their N mirror images."""
     return episodes.s0, episodes.final, episodes.traj
-
-
-@pytest.mark.slow  # the expert-rollout compile; CI runs it with the slow suite
-def test_expert_generic_checks(episodes):
-    """Success rate over 50 starts, shapes, and S on the recorded demos (``task_rollouts``)."""
-    check_expert_episodes(episodes)
 
 
 def _poses(env, qpos):

@@ -20,7 +20,7 @@ from mujoco import mjx
 from equibim_jax.tasks import make_env, make_scene, task_entry, task_names, task_options
 from equibim_jax.tasks.place_empty_cup import PlaceEmptyCup, held_opening
 
-from task_rollouts import N_PAIRS, assert_same_point_set, check_expert_episodes, expert_episodes
+from task_rollouts import N_PAIRS, assert_same_point_set, expert_fixtures
 
 N_SEEDS = N_PAIRS  # starts kept whole in the shared expert episodes, each with its mirror image
 
@@ -30,17 +30,7 @@ def _env(side="both"):
     return make_env("place_empty_cup", side=side, obs=("qpos",))
 
 
-@pytest.fixture(scope="module")
-def episodes():
-    """The task's shared expert episodes (``task_rollouts.expert_episodes``): 50 seeded starts,
-    the first N_SEEDS of them also from their mirror images, one compiled program."""
-    return expert_episodes("place_empty_cup")
-
-
-@pytest.mark.slow  # the expert-rollout compile; CI runs it with the slow suite
-def test_expert_generic_checks(episodes):
-    """Success rate over 50 starts, shapes, and S on the recorded demos (``task_rollouts``)."""
-    check_expert_episodes(episodes)
+episodes, test_expert_generic_checks = expert_fixtures("place_empty_cup")
 
 
 # ---------------------------------------------------------------------------- registry
