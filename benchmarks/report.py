@@ -339,18 +339,34 @@ def section_sim(name: str, d: dict) -> str:
     parts = [f"## Simulator: `{name}`", _cmd_block(cmd, note), table, how]
     if d.get("variants"):
         vrows = []
+        solver_cols = any((v.get("solver_iterations", m.get("iterations")), v.get("ls_iterations", m.get("ls_iterations")))
+                          != (m.get("iterations"), m.get("ls_iterations")) for v in d["variants"].values())
         for spec, v in d["variants"].items():
             for b in sorted(v["mjx"], key=int):
                 r = v["mjx"][b]
-                vrows.append([_code(spec), _int(v["devices"]),
-                              "all" if v["max_contacts"] is None else _int(v["max_contacts"]),
-                              f"{v['contacts']} / {v['constraint_rows']}", _int(int(b)), _f(r["compile_s"], 1),
-                              _f(r["run_s"], 3), _int(r["steps_per_s"]), _ratio(r["steps_per_s"] / c)])
-        parts.append("Every variant (`DEVICES:CONTACTS`), each in its own process"
+                row = [_code(spec), _int(v["devices"]),
+                       "all" if v["max_contacts"] is None else _int(v["max_contacts"]),
+                       f"{v['contacts']} / {v['constraint_rows']}"]
+                if solver_cols:
+                    row.append(f"{v.get('solver_iterations', m.get('iterations'))} / "
+                               f"{v.get('ls_iterations', m.get('ls_iterations'))}")
+                row += [_int(int(b)), _f(r["compile_s"], 1), _f(r["run_s"], 3), _int(r["steps_per_s"]),
+                        _ratio(r["steps_per_s"] / c)]
+                if solver_cols:
+                    cs = v.get("c_steps_per_s_same_solver", c)
+                    row.append(_ratio(r["steps_per_s"] / cs))
+                vrows.append(row)
+        parts.append("Every variant (`DEVICES:CONTACTS" + ("[:ITERATIONS:LS_ITERATIONS]" if solver_cols else "")
+                     + "`), each in its own process"
                      + (", compile cache off" if d.get("compile_cache") == "off" else "")
-                     + f"; the table above shows `{d.get('headline_variant')}`:")
-        parts.append(_table(["variant", "CPU devices", "max contacts", "contacts / constraint rows", "batch",
-                             "compile (s)", "run (s)", "physics steps/s", "ratio to MuJoCo C"], vrows))
+                     + f"; the table above shows `{d.get('headline_variant')}`"
+                     + (". A variant with other solver limits changes the physics; the last column divides "
+                        "by MuJoCo C run with the same limits" if solver_cols else "") + ":")
+        head = ["variant", "CPU devices", "max contacts", "contacts / constraint rows"]
+        head += ["solver / line-search iterations"] if solver_cols else []
+        head += ["batch", "compile (s)", "run (s)", "physics steps/s", "ratio to MuJoCo C"]
+        head += ["ratio to MuJoCo C, same limits"] if solver_cols else []
+        parts.append(_table(head, vrows))
     if targets:
         parts.append("Targets: " + "; ".join(targets) + ".")
     parts.append(f"Recorded: {env}. Model: {model}.")
@@ -374,11 +390,19 @@ def section_contacts(name: str, d: dict) -> str:
         head = ["task", "episodes", "contact slots", "most touching at once"]
         title = f"## Contacts touching at once: `{name}`"
     else:
-        keep = next(iter(d["tasks"].values()))["keep"]
-        head = ["task", "success, all slots", f"success, {keep} kept", "same episodes succeed",
-                "qpos difference: median / largest", "mirror error, all: median / largest",
-                f"mirror error, {keep} kept: median / largest"]
-        title = f"## Keeping the deepest contacts: `{name}`"
+        r0 = next(iter(d["tasks"].values()))
+        keep, ref_keep = r0["keep"], r0.get("ref_keep")
+        ref = "all slots" if ref_keep is None else f"{ref_keep} kept"
+        var = f"{keep} kept"
+        solver = [f"{r0[k]} {lab}" for k, lab in (("solver_iterations", "solver it."), ("ls_iterations", "line-search it."))
+                  if r0.get(k) is not None]
+        if solver:
+            var += ", " + ", ".join(solver)
+        head = ["task", f"success, {ref}", f"success, {var}", "same episodes succeed",
+                "qpos difference: median / largest", f"mirror error, {ref}: median / largest",
+                f"mirror error, {var}: median / largest"]
+        title = (f"## Lower solver iteration limits: `{name}`" if solver
+                 else f"## Keeping the deepest contacts: `{name}`")
     parts = [title, _cmd_block(d["command"], d.get("note", "")), _table(head, rows)]
     return "\n\n".join(parts)
 

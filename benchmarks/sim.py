@@ -8,13 +8,17 @@ steps (``mjx.step`` calls, one per env) per second of a jitted ``vmap`` over the
 best of the later calls), with the persistent compilation cache off so that compiles are
 real. MJX figures are also given as a ratio to MuJoCo C measured in the same run.
 
-MJX runs in one child process per *variant* ``DEVICES:CONTACTS``:
+MJX runs in one child process per *variant* ``DEVICES:CONTACTS[:ITERATIONS:LS_ITERATIONS]``:
 
 * ``DEVICES``: CPU devices (``--xla_force_host_platform_device_count``), the batch sharded
   over them (``equibim_jax._sharding``). XLA runs one device's program on one thread, so on
   a multi-core CPU more devices use more cores;
 * ``CONTACTS``: ``all`` (every candidate pair's contacts) or ``K``
-  (``EnvConfig.max_contacts``: the K deepest contacts are kept).
+  (``EnvConfig.max_contacts``: the K deepest contacts are kept);
+* ``ITERATIONS:LS_ITERATIONS`` (optional): the solver's Newton and line-search iteration
+  limits (``EnvConfig.solver_iterations`` / ``ls_iterations``; default: the model's). Such a
+  variant changes the physics; MuJoCo C is then also timed with the same limits
+  (``c_steps_per_s_same_solver``), since its cost depends on them too.
 
 The JSON keeps the headline figures (``mjx_steps_per_s`` ...) of the first variant and
 every variant under ``variants``.
@@ -23,6 +27,7 @@ every variant under ``variants``.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import os
 import platform
@@ -131,9 +136,11 @@ def child(args) -> dict:
 
     disable_compilation_cache()
     n_steps = 20 if args.quick else 100
-    env = Env(EnvConfig(obs=("qpos",), max_contacts=args.max_contacts), BoxScene())
+    env = Env(EnvConfig(obs=("qpos",), max_contacts=args.max_contacts, solver_iterations=args.solver_iterations,
+                        ls_iterations=args.ls_iterations), BoxScene())
     d0 = env.reset(jax.random.key(0)).data
     res = {"devices": jax.device_count(), "max_contacts": args.max_contacts,
+           "solver_iterations": int(env.mj_model.opt.iterations), "ls_iterations": int(env.mj_model.opt.ls_iterations),
            "contacts": int(d0._impl.contact.dist.shape[0]), "constraint_rows": int(d0._impl.efc_J.shape[0]),
            "mjx": {}, "render": {}}
     for b in [int(x) for x in args.batches.split(",")]:
@@ -144,17 +151,25 @@ def child(args) -> dict:
     return res
 
 
-def _variant(spec: str) -> tuple[int, int | None]:
-    dev, _, con = spec.partition(":")
-    return int(dev), (None if con in ("", "all") else int(con))
+def _variant(spec: str) -> tuple[int, int | None, int | None, int | None]:
+    """``DEVICES:CONTACTS[:ITERATIONS:LS_ITERATIONS]`` -> (devices, contacts, iterations, ls)."""
+    parts = spec.split(":")
+    if len(parts) not in (1, 2, 4):
+        raise ValueError(spec)
+    dev = int(parts[0])
+    con = parts[1] if len(parts) > 1 else ""
+    it, ls = (int(parts[2]), int(parts[3])) if len(parts) == 4 else (None, None)
+    return dev, (None if con in ("", "all") else int(con)), it, ls
 
 
 def run_variant(spec: str, args) -> dict:
-    devices, max_contacts = _variant(spec)
+    devices, max_contacts, iterations, ls_iterations = _variant(spec)
     batches = ",".join(b for b in args.batches.split(",") if int(b) % devices == 0)
     cmd = [sys.executable, os.path.abspath(__file__), "--child", "--batches", batches]
     if max_contacts is not None:
         cmd += ["--max-contacts", str(max_contacts)]
+    if iterations is not None:
+        cmd += ["--solver-iterations", str(iterations), "--ls-iterations", str(ls_iterations)]
     if args.quick:
         cmd.append("--quick")
     if spec == args.variants.split(",")[0]:
@@ -174,9 +189,12 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="fewer steps (smoke run)")
     ap.add_argument("--batches", default="1,64,256")
     ap.add_argument("--variants", default="2:24,1:all,2:all,1:24",
-                    help="comma-separated DEVICES:CONTACTS (CONTACTS 'all' or a number); the first is the headline")
+                    help="comma-separated DEVICES:CONTACTS[:ITERATIONS:LS_ITERATIONS] (CONTACTS 'all' or a "
+                         "number; solver limits default to the model's); the first is the headline")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--max-contacts", type=int, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--solver-iterations", type=int, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--ls-iterations", type=int, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--render", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
@@ -186,10 +204,11 @@ def main(argv=None):
         ap.error("--out is required")
     for spec in args.variants.split(","):
         try:
-            d, k = _variant(spec)
-            assert d >= 1 and (k is None or k >= 1)
+            d, k, it, ls = _variant(spec)
+            assert d >= 1 and (k is None or k >= 1) and (it is None or (it >= 1 and ls >= 1))
         except (ValueError, AssertionError):
-            ap.error(f"bad variant {spec!r}: expected DEVICES:CONTACTS, e.g. 2:24 or 1:all")
+            ap.error(f"bad variant {spec!r}: expected DEVICES:CONTACTS[:ITERATIONS:LS_ITERATIONS], "
+                     "e.g. 2:24, 1:all or 2:24:3:4")
 
     n_steps = 20 if args.quick else 100
     env = Env(EnvConfig(obs=("qpos",)), BoxScene())
@@ -205,8 +224,18 @@ def main(argv=None):
     print(f"mujoco.rollout, 2 threads, batch 256: {ro_sps:,.0f} steps/s")
 
     variants = {}
+    c_same = {}  # (iterations, ls_iterations) -> MuJoCo C steps/s with those limits
     for spec in args.variants.split(","):
         v = run_variant(spec, args)
+        solver = (v["solver_iterations"], v["ls_iterations"])
+        if solver != (m.opt.iterations, m.opt.ls_iterations):
+            if solver not in c_same:
+                mv = copy.deepcopy(m)
+                mv.opt.iterations, mv.opt.ls_iterations = solver
+                c_same[solver] = bench_c(mv, qpos0, ctrl0, 20000 if not args.quick else 2000)
+                print(f"MuJoCo C mj_step, 1 thread, iterations {solver[0]}, ls_iterations {solver[1]}: "
+                      f"{c_same[solver]:,.0f} steps/s")
+            v["c_steps_per_s_same_solver"] = c_same[solver]
         variants[spec] = v
         for b, r in v["mjx"].items():
             print(f"MJX {spec:>7s} ({v['contacts']} contacts, {v['constraint_rows']} rows) batch {int(b):4d}: "
