@@ -61,3 +61,23 @@ def test_report_titles_a_solver_comparison():
     text = report.section_contacts("solver_x.json", {"command": "python benchmarks/contacts.py", "tasks": {"t": rec}})
     assert text.startswith("## Lower solver iteration limits")
     assert "success, 24 kept, 3 solver it., 4 line-search it." in text and "| 4/4 | 3/4 | no |" in text
+
+
+def test_mujoco_c_reference_is_a_best_of_repeats_from_one_start():
+    import mujoco
+    import numpy as np
+
+    sim = _load("sim")
+    model = mujoco.MjModel.from_xml_string(
+        "<mujoco><worldbody><body><freejoint/><geom size='.1'/></body></worldbody></mujoco>")
+    q0 = np.array([0, 0, 1, 1, 0, 0, 0], float)
+    sps = sim.bench_c(model, q0, np.zeros(0), 50, reps=3)
+    assert np.isfinite(sps) and sps > 0
+
+
+def test_report_states_the_timing_protocol_of_newer_files():
+    report = _load("report")
+    old = report.section_sim("sim_x.json", _sim_result(False))
+    new = report.section_sim("sim_x.json", {**_sim_result(False), "timing": "best of 5"})
+    assert "best of 3 later calls" in old and "MuJoCo C: the best of 5 runs" not in old
+    assert "best of 5 later calls" in new and "MuJoCo C: the best of 5 runs" in new
