@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import jax
@@ -94,19 +95,18 @@ def split_outcomes(results: dict, cell: str, key: str, evaluation: str | None = 
             if v.shape != (n,):
                 raise ConfigError(f"cell {cell!r}, arm {arm}, side {s}: {v.shape[0]} outcomes, "
                                   f"the evaluation config says {n} episodes")
-    values = np.unique(np.concatenate([info[s].reshape(n, -1)[:, 0] for s in sides]))
+    vals = {s: info[s].reshape(n, -1)[:, 0] for s in sides}
     groups = {}
-    for v in values:
-        masks = {s: info[s].reshape(n, -1)[:, 0] == v for s in sides}
+    for v in np.unique(np.concatenate(list(vals.values()))):
+        masks = {s: vals[s] == v for s in sides}
+        succ = {arm: np.concatenate([d[s][masks[s]] for s in sides]) for arm, d in per.items()}
         arms = {}
-        for arm, d in per.items():
-            succ = np.concatenate([d[s][masks[s]] for s in sides])
-            k, m = int(succ.sum()), int(succ.size)
+        for arm, x in succ.items():
+            k, m = int(x.sum()), int(x.size)
             arms[arm] = {"successes": k, "episodes": m, "success": k / m if m else float("nan"),
                          "ci95": list(wilson_interval(k, m)) if m else None}
-        base = np.concatenate([per["baseline"][s][masks[s]] for s in sides])
-        tests = {arm: paired_sign_test(base, np.concatenate([d[s][masks[s]] for s in sides]))
-                 for arm, d in per.items() if arm != "baseline" and base.size}
+        tests = {arm: paired_sign_test(succ["baseline"], x)
+                 for arm, x in succ.items() if arm != "baseline" and x.size}
         groups[str(float(v))] = {"episodes": {s: int(masks[s].sum()) for s in sides},
                                  "arms": arms, "sign_tests": tests}
     return {"cell": cell, "evaluation": evaluation, "key": key, "groups": groups}
@@ -145,8 +145,9 @@ def main(argv=None) -> None:
     except ConfigError as e:
         raise SystemExit(str(e)) from None
     if args.out is not None:
+        args_given = sys.argv[1:] if argv is None else argv
         atomic_write_json(args.out, {**split, "command": "python -m equibim_jax.experiments.split "
-                                     + " ".join(str(a) for a in (argv if argv is not None else __import__("sys").argv[1:]))})
+                                     + " ".join(str(a) for a in args_given)})
     print(markdown(split), end="")
 
 
