@@ -206,6 +206,9 @@ def test_shipped_experiments_parse():
     same = [c for c in t2.cells if c.name in {d.name for d in t1.cells}]
     assert len(same) == 32 and all(c == d for c, d in zip(same, t1.cells))
     assert sum(c.task.options.get("robotwin_faithful", False) for c in t2.cells) == 8
+    # its own cells resolve against table1's presets and defaults (not a copy that drifts)
+    presets = {c.preset: (c.policy, c.train, c.eval, c.demos, c.seed) for c in t1.cells}
+    assert all((c.policy, c.train, c.eval, c.demos, c.seed) == presets[c.preset] for c in t2.cells)
     t3 = load_experiment("table3")
     assert {c.task.name: [e[0] for e in c.evals] for c in t3.cells} == {
         "banana_handover": ["train_dist", "mirrored_orientation"], "drumstick_hook": ["train_dist"],
@@ -221,6 +224,31 @@ def test_shipped_experiments_parse():
     for name in ("table1", "table2", "table3", "ablation"):
         q = load_experiment(name, quick=True)
         assert q.quick and all(c.demos <= 2 and c.train.total_steps <= 20 for c in q.cells)
+
+
+def test_including_experiment_inherits_presets_and_defaults(tmp_path):
+    """An including file's cells use the included file's presets, train, eval, demos and
+    seed where it gives none; a local preset of the same name, or a local default, wins."""
+    base = json.loads((REPO / "tasks/experiments/smoke.json").read_text())
+    (tmp_path / "base.json").write_text(json.dumps(base))
+    preset = next(iter(base["policies"]))
+    cell = {"name": "own", "task": base["cells"][0]["task"], "policy": preset}
+    inc = {"name": "inc", "include": str(tmp_path / "base.json"), "cells": [cell]}
+    (tmp_path / "inc.json").write_text(json.dumps(inc))
+    exp = load_experiment(str(tmp_path / "inc.json"))
+    own, = (c for c in exp.cells if c.name == "own")
+    first = next(c for c in exp.cells if c.name != "own" and c.preset == preset)
+    assert (own.policy, own.train, own.eval, own.demos, own.seed) == (
+        first.policy, first.train, first.eval, first.demos, first.seed)
+    changed = json.loads(json.dumps(base["policies"][preset]))
+    changed.setdefault("train", {})["total_steps"] = 2 * own.train.total_steps
+    inc.update(policies={preset: changed}, demos=own.demos + 1)
+    (tmp_path / "inc.json").write_text(json.dumps(inc))
+    own2, = (c for c in load_experiment(str(tmp_path / "inc.json")).cells if c.name == "own")
+    assert own2.train.total_steps == 2 * own.train.total_steps and own2.demos == own.demos + 1
+    with pytest.raises(ConfigError, match="unknown policy preset 'nope'"):
+        (tmp_path / "inc.json").write_text(json.dumps({**inc, "cells": [{**cell, "policy": "nope"}]}))
+        load_experiment(str(tmp_path / "inc.json"))
 
 
 def test_merge_previous_keeps_unchanged_cells_only():

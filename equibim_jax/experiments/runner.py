@@ -161,7 +161,7 @@ def _raw_cells(data: dict, path: Path, seen: tuple = ()) -> list[dict]:
         ip = experiment_path(inc)
         if ip.resolve() in seen:
             raise ConfigError(f"{path}: include cycle through {ip}")
-        idata = _read(ip)
+        idata = _with_included_defaults(_read(ip), ip, seen + (path.resolve(),))
         for c in _raw_cells(idata, ip, seen + (path.resolve(),)):
             cells.append(_resolve_defaults(c, idata, ip))
     grid = data.get("grid")
@@ -177,6 +177,33 @@ def _raw_cells(data: dict, path: Path, seen: tuple = ()) -> list[dict]:
             raise ConfigError(f"{path}: every cell must be a JSON object, got {c!r}")
         cells.append({**c, "_local": True})
     return cells
+
+
+_BY_NAME = ("policies", "tasks")
+_WHOLE = ("seed", "demos", "train", "eval", "quick")
+
+
+def _with_included_defaults(data: dict, path: Path, seen: tuple = ()) -> dict:
+    """``data`` with what its own cells resolve against taken from its ``include`` chain
+    where the file does not give it: policy presets and per-task defaults by name (a local
+    entry replaces the included one of that name), and ``seed``, ``demos``, ``train``,
+    ``eval`` and ``quick`` as a whole. An including experiment's cells therefore use the
+    included experiment's presets, not a copy of them that can fall out of date."""
+    inc = data.get("include")
+    if inc is None:
+        return data
+    ip = experiment_path(inc)
+    if ip.resolve() in seen or ip.resolve() == path.resolve():
+        raise ConfigError(f"{path}: include cycle through {ip}")
+    base = _with_included_defaults(_read(ip), ip, seen + (path.resolve(),))
+    out = dict(data)
+    for k in _BY_NAME:
+        if k in base:
+            out[k] = {**base[k], **data.get(k, {})}
+    for k in _WHOLE:
+        if k not in data and k in base:
+            out[k] = base[k]
+    return out
 
 
 def _resolve_defaults(c: dict, data: dict, path: Path) -> dict:
@@ -288,7 +315,8 @@ def load_experiment(name: str, quick: bool = False, only: tuple[str, ...] | None
     view = data.get("view", "per_cell")
     if view not in VIEWS:
         raise ConfigError(f"{path}: unknown view {view!r}; valid: {VIEWS}")
-    raws = [_resolve_defaults(c, data, path) for c in _raw_cells(data, path)]
+    local = _with_included_defaults(data, path)
+    raws = [_resolve_defaults(c, local, path) for c in _raw_cells(data, path)]
     if not raws:
         raise ConfigError(f"{path}: no cells (give 'cells', 'grid' or 'include')")
     names = [c["name"] for c in raws]
