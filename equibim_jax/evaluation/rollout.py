@@ -136,10 +136,7 @@ def make_policy_rollout(env: Env, policy: Policy, normalizer, length: int | None
         n_exec = cfg.pred_horizon - to + 1
 
         def rollout_te(params, key, mirrored=False):
-            k_reset, k_pol = jax.random.split(key)
-            s = env.reset(k_reset)
-            s_m = env.mirror_state(s)
-            s = jax.tree.map(lambda a, b: jnp.where(mirrored, b, a), s, s_m)
+            s, k_pol = episode_start(env, key, mirrored)
             hist = {f: jnp.repeat(s.obs[f][None], to, axis=0) for f in fields}  # [To, ...]
             buf = init_ensemble_buffer(n_exec, cfg.action_dim)
 
@@ -166,10 +163,7 @@ def make_policy_rollout(env: Env, policy: Policy, normalizer, length: int | None
         return rollout_te
 
     def rollout(params, key, mirrored=False):
-        k_reset, k_pol = jax.random.split(key)
-        s = env.reset(k_reset)
-        s_m = env.mirror_state(s)
-        s = jax.tree.map(lambda a, b: jnp.where(mirrored, b, a), s, s_m)
+        s, k_pol = episode_start(env, key, mirrored)
         hist = {f: jnp.repeat(s.obs[f][None], to, axis=0) for f in fields}  # [To, ...]
 
         def chunk(carry, i):
@@ -241,6 +235,25 @@ def summarize(successes) -> dict:
     return {"success": k / n, "ci95": [lo, hi], "episodes": n, "successes": k}
 
 
+def episode_keys(key: jax.Array, n_episodes: int) -> jax.Array:
+    """The key of each evaluation episode, ``[n_episodes]``: episode ``i`` of every side
+    (trained and mirrored) uses ``episode_keys(key, n)[i]``."""
+    return jax.random.split(key, n_episodes)
+
+
+def episode_start(env: Any, key: jax.Array, mirrored: Any = False) -> tuple[Any, jax.Array]:
+    """The start of the evaluation episode with key ``key`` (one of :func:`episode_keys`) and
+    its policy key: ``(state, k_policy)``. ``key`` splits into the reset key and the policy
+    key; with ``mirrored`` (a bool, traced or not) the state is the mirror image of the
+    trained side's start (``env.mirror_state``). Every rollout and every analysis of an
+    evaluation's starts derives them here, so they cannot drift apart."""
+    k_reset, k_pol = jax.random.split(key)
+    s = env.reset(k_reset)
+    s_m = env.mirror_state(s)
+    s = jax.tree.map(lambda a, b: jnp.where(mirrored, b, a), s, s_m)
+    return s, k_pol
+
+
 def evaluate_sides(rollout: Callable, params: Any, key: jax.Array, n_episodes: int,
                    chunk: int = 32, sides: tuple[str, ...] = ("trained", "mirrored"),
                    progress: bool = False, desc: str = "eval") -> dict:
@@ -287,7 +300,7 @@ def _run_paired(run: Callable, params: Any, key: jax.Array, n_episodes: int, chu
         raise ValueError(f"sides must be a non-empty subset of ('trained', 'mirrored'), got {sides}")
     if n_episodes < 1 or chunk < 1:
         raise ValueError(f"n_episodes and chunk must be >= 1, got {n_episodes}, {chunk}")
-    keys = jax.random.split(key, n_episodes)
+    keys = episode_keys(key, n_episodes)
     all_keys = jnp.concatenate([keys] * len(sides))
     flags = jnp.concatenate([jnp.full((n_episodes,), s == "mirrored") for s in sides])
     total = all_keys.shape[0]

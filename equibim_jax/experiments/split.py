@@ -31,28 +31,27 @@ from equibim_jax.evaluation.stats import paired_sign_test, wilson_interval
 def start_info(task: str, options: dict, seed: int, episodes: int, key: str) -> dict[str, np.ndarray]:
     """``info[key]`` of the evaluation's starts, per side.
 
-    Episode ``i`` uses ``jax.random.split(jax.random.key(seed), episodes)[i]``, split once
-    more into the reset key and the policy key (as ``evaluation.rollout`` does); the mirrored
-    side starts from ``env.mirror_state`` of the same reset.
+    The starts are those the evaluation ran: ``evaluation.rollout.episode_start`` of
+    ``episode_keys(jax.random.key(seed), episodes)[i]``, unmirrored and mirrored.
 
     Returns:
       ``{"trained": [episodes, ...], "mirrored": [episodes, ...]}`` numpy arrays.
     Raises:
       ConfigError: the start's ``info`` has no entry ``key`` (the message lists those it has).
     """
+    from equibim_jax.evaluation.rollout import episode_keys, episode_start
     from equibim_jax.tasks import make_env
 
     env = make_env(task, **options)
 
     def one(k):
-        k_reset, _ = jax.random.split(k)
-        s = env.reset(k_reset)
-        s_m = env.mirror_state(s)
+        s, _ = episode_start(env, k, False)
+        s_m, _ = episode_start(env, k, True)
         if key not in s.info:
             raise ConfigError(f"task {task!r}: the start's info has no {key!r}; it has {sorted(s.info)}")
         return s.info[key], s_m.info[key]
 
-    keys = jax.random.split(jax.random.key(seed), episodes)
+    keys = episode_keys(jax.random.key(seed), episodes)
     tr, mi = jax.jit(jax.vmap(one))(keys)
     return {"trained": np.asarray(tr), "mirrored": np.asarray(mi)}
 
