@@ -8,7 +8,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from equibim_jax._batching import chunked_vmap
 from equibim_jax.experts import make_expert, make_rollout
 from equibim_jax.tasks import make_env
 
@@ -21,12 +20,14 @@ def collides(m, g1: int, g2: int) -> bool:
 # ------------------------------------------------------------------ generic expert episodes
 # One compiled program per task serves both the generic expert check (success rate and S on
 # recorded demos) and the task file's own checks of the expert (what it grasped, where the
-# objects went, the mirrored start). Tasks without a test file of their own get the generic
-# check from test_all_tasks.py.
+# objects went, the mirrored start, starts drawn by other scenes of the task). Tasks without a
+# test file of their own get the generic check from test_all_tasks.py.
 N_STARTS = 50  # the first 50 of the 200 seeded starts that `equibim experts --episodes 200` runs
 N_PAIRS = 25  # of these, the first 25 also run from their mirror images (one batch each)
 EXPERT_SEED = 2024  # `equibim experts`' default seed
-EPISODE_OBS = ("qpos", "ee", "point_cloud")
+EPISODE_OBS = ("qpos", "ee")  # observed at every step (recorded in ``traj["obs"]``)
+START_OBS = "point_cloud"  # rendered for the initial and final states only: per step it would
+#                            double the program's run time and add to its compile time
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,11 +36,17 @@ class ExpertEpisodes:
     ``N_PAIRS``, for ``length`` steps (the script's horizon + 10).
 
     ``s0``, ``final`` and ``traj`` hold ``2 * N_PAIRS`` episodes: index ``i < N_PAIRS`` is start
-    ``i``, index ``N_PAIRS + i`` its mirror image (states as returned by the env; ``traj`` as
-    numpy arrays ``[2 * N_PAIRS, length, ...]`` with ``action``, ``success``, ``reward``,
-    ``qpos`` and ``obs``). ``success`` holds the latched final success of all ``N_STARTS``.
-    ``run(starts [N_PAIRS]) -> (final, traj)`` is the compiled program itself, for other
-    starts of the same env (same model, same state pytree).
+    ``i``, index ``N_PAIRS + i`` its mirror image (``env.mirror_state``). States are as the env
+    (observing ``EPISODE_OBS``) returns them, with the ``START_OBS`` point cloud of the same
+    data added to ``obs``; ``traj`` as numpy arrays ``[2 * N_PAIRS, length, ...]`` with
+    ``action``, ``success``, ``reward``, ``qpos`` and ``obs`` (``EPISODE_OBS``). ``success``
+    holds the latched final success of all ``N_STARTS``.
+
+    ``run(qpos [N_PAIRS, nq], info, mirror [N_PAIRS] bool) -> (s0, final, traj)`` is the
+    compiled program itself: ``env.reset_to`` each drawn start (``scene.init``'s pair, from
+    any scene of the task on the same model), ``env.mirror_state`` where ``mirror``, then the
+    expert (``run_starts`` batches it). ``draw(keys [n]) -> (qpos, info)`` is the env's own
+    scene's draw.
     """
 
     task: str
@@ -50,38 +57,51 @@ class ExpertEpisodes:
     traj: dict
     success: np.ndarray
     run: object
+    draw: object
 
 
 def expert_episodes(task: str, **options) -> ExpertEpisodes:
     """Run the expert of ``task`` (env built with ``obs=EPISODE_OBS`` and ``options``) from the
     first ``N_STARTS`` starts of ``equibim experts``' seeds and from the mirror images of the
-    first ``N_PAIRS``: one compiled rollout program over batches of ``N_PAIRS``."""
+    first ``N_PAIRS``: one compiled program (reset, mirror, rollout) over batches of
+    ``N_PAIRS``, and a small one rendering the point clouds of its first and last states."""
     env = make_env(task, obs=EPISODE_OBS, **options)
+    cloud_env = make_env(task, obs=(START_OBS,), **options)
     expert = make_expert(env)
     length = expert.horizon + 10
     roll = make_rollout(env, expert, length=length, obs=True)
 
     @jax.jit
-    def starts(keys):
-        s = jax.vmap(env.reset)(keys)
-        return s, jax.vmap(env.mirror_state)(s)
+    def draw(keys):
+        return jax.vmap(lambda k: env.scene.init(k, env))(keys)
 
     @jax.jit
-    def run(s0):
-        return chunked_vmap(roll.from_state, chunk=N_PAIRS)(s0)
+    def run(qpos, info, mirror):
+        s = jax.vmap(env.reset_to)(qpos, info)
+        sm = jax.vmap(env.mirror_state)(s)
+        s0 = jax.tree.map(lambda a, b: jnp.where(mirror.reshape((-1,) + (1,) * (a.ndim - 1)), b, a), s, sm)
+        return (s0, *jax.vmap(roll.from_state)(s0))
+
+    @jax.jit
+    def clouds(data):
+        return jax.vmap(cloud_env.observe)(data)[START_OBS]
 
     keys = jax.random.split(jax.random.key(EXPERT_SEED), 200)[:N_STARTS]
+    qpos, info = draw(keys)
+    part = lambda t, i: jax.tree.map(lambda a: a[i : i + N_PAIRS], t)
     cat = lambda a, b: jax.tree.map(lambda x, y: jnp.concatenate([x, y]), a, b)
+    no = jnp.zeros(N_PAIRS, bool)
     success = []
     for i in range(0, N_STARTS, N_PAIRS):
-        s, sm = starts(keys[i : i + N_PAIRS])
-        final, traj = run(s)
+        s0, final, traj = run(part(qpos, i), part(info, i), no)
         success.append(np.asarray(final.info["success"]))
         if i == 0:
-            final_m, traj_m = run(sm)
-            pair = (cat(s, sm), cat(final, final_m), jax.tree.map(np.asarray, cat(traj, traj_m)))
-    s0, final, traj = pair
-    return ExpertEpisodes(task, env, length, s0, final, traj, np.concatenate(success), run)
+            pair = (s0, final, traj), run(part(qpos, 0), part(info, 0), ~no)
+    (s0, final, traj), (s0_m, final_m, traj_m) = pair
+    with_cloud = lambda s: s.replace(obs={**s.obs, START_OBS: clouds(s.data)})
+    s0, final = with_cloud(cat(s0, s0_m)), with_cloud(cat(final, final_m))
+    traj = jax.tree.map(np.asarray, cat(traj, traj_m))
+    return ExpertEpisodes(task, env, length, s0, final, traj, np.concatenate(success), run, draw)
 
 
 def check_expert_episodes(ep: ExpertEpisodes, min_rate: float = 0.95) -> None:
@@ -149,20 +169,23 @@ def expert_fixtures(task: str, **options):
     return episodes, test_expert_generic_checks
 
 
-def run_starts(ep: ExpertEpisodes, s0):
-    """Run the expert of ``ep`` from any batch of initial states ``s0`` (of ``ep.env``: same
-    state pytree) through the episodes' compiled program, ``N_PAIRS`` at a time (the last
-    batch padded with copies of the first state). Returns ``(final, traj)`` with leading
-    dimension ``len(s0)``; ``traj`` as numpy arrays."""
-    n = int(jax.tree.leaves(s0)[0].shape[0])
+def run_starts(ep: ExpertEpisodes, qpos, info, mirror=None):
+    """Run the expert of ``ep`` from any batch of drawn starts ``(qpos [n, nq], info)`` (the
+    pair a scene of the task returns from ``scene.init``; ``mirror [n]`` bool: start from the
+    mirror image instead, default none) through the episodes' compiled program, ``N_PAIRS``
+    at a time (the last batch padded with copies of the first start). Returns
+    ``(s0, final, traj)`` with leading dimension ``n``; ``traj`` as numpy arrays."""
+    n = int(qpos.shape[0])
+    mirror = jnp.zeros(n, bool) if mirror is None else jnp.asarray(mirror, bool)
+    args = (qpos, info, mirror)
     pad = -n % N_PAIRS
     if pad:
-        s0 = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[:1], pad, axis=0)]), s0)
+        args = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[:1], pad, axis=0)]), args)
     compiled = ep.run._cache_size()
-    outs = [ep.run(jax.tree.map(lambda a: a[i : i + N_PAIRS], s0)) for i in range(0, n + pad, N_PAIRS)]
-    assert ep.run._cache_size() == compiled, "s0 is not a batch of the episodes' env states: it recompiled"
-    final, traj = jax.tree.map(lambda *a: jnp.concatenate(a)[:n], *outs)
-    return final, jax.tree.map(np.asarray, traj)
+    outs = [ep.run(*jax.tree.map(lambda a: a[i : i + N_PAIRS], args)) for i in range(0, n + pad, N_PAIRS)]
+    assert ep.run._cache_size() == compiled, "the starts are not (qpos, info) of the episodes' task: it recompiled"
+    s0, final, traj = jax.tree.map(lambda *a: jnp.concatenate(a)[:n], *outs)
+    return s0, final, jax.tree.map(np.asarray, traj)
 
 
 def assert_same_point_set(a: np.ndarray, b: np.ndarray, atol: float) -> None:

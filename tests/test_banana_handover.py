@@ -279,29 +279,24 @@ def mjx_rollouts(episodes):
     on the left, the same keys' starts on the right (their exact mirror images, see
     ``test_initial_distribution_and_shift_options``), N_MIRRORED starts with
     ``mirrored_orientation=True`` and N_PERTURBED right-side starts with
-    ``asymmetric_quality=1.0``. The options change only ``qpos`` and ``info`` of a start, so
-    the starts are the env's reset states with those two replaced (``mjx.step`` recomputes
-    everything else from ``qpos``), and the one program runs them all."""
+    ``asymmetric_quality=1.0``. The options change only what a scene draws (``qpos`` and
+    ``info``), so the one program (``env.reset_to`` the draws, then the expert) runs them all."""
     env = episodes.env
     k = jax.random.split(jax.random.key(5), N_SEEDS + N_MIRRORED + N_PERTURBED)
     groups = [({"side": "left"}, k[:N_SEEDS]), ({"side": "right"}, k[:N_SEEDS]),
               ({"mirrored_orientation": True, "side": "left"}, k[N_SEEDS : N_SEEDS + N_MIRRORED // 2]),
               ({"mirrored_orientation": True, "side": "right"}, k[N_SEEDS : N_SEEDS + N_MIRRORED // 2]),
               ({"side": "right", "asymmetric_quality": 1.0}, k[N_SEEDS + N_MIRRORED :])]
-    drawn = [jax.vmap(lambda key, sc=make_scene(TASK, **o): sc.init(key, env))(ks) for o, ks in groups]
-    qpos, info = jax.tree.map(lambda *x: jnp.concatenate(x), *drawn)
-    keys = jnp.concatenate([ks for _, ks in groups])
-    assert len(keys) == N_SEEDS * 2 + N_MIRRORED + N_PERTURBED
+    scenes = [make_scene(TASK, **o) for o, _ in groups]
 
-    @jax.jit
-    def starts(keys, qpos, info):
-        s0 = jax.vmap(env.reset)(keys)
-        info = {**s0.info, **{k: v.astype(s0.info[k].dtype) for k, v in info.items()}}
-        return s0.replace(data=s0.data.replace(qpos=qpos.astype(s0.data.qpos.dtype)), info=info)
+    @jax.jit  # one small program for the five scenes' draws (vmap alone runs op by op)
+    def draws(keys):
+        drawn = [jax.vmap(lambda key, sc=sc: sc.init(key, env))(ks) for sc, ks in zip(scenes, keys)]
+        return jax.tree.map(lambda *x: jnp.concatenate(x), *drawn)
 
-    s0 = starts(keys, qpos, info)
-    final, traj = run_starts(episodes, s0)
-    return s0, final, traj
+    qpos, info = draws([ks for _, ks in groups])
+    assert len(qpos) == N_SEEDS * 2 + N_MIRRORED + N_PERTURBED
+    return run_starts(episodes, qpos, info)
 
 
 @pytest.mark.slow

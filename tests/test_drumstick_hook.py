@@ -297,30 +297,23 @@ episodes, test_expert_generic_checks = expert_fixtures(TASK)
 def rollouts(episodes):
     """(env, initial states, final states, traj): N seeds, their N mirror images, then
     N_PERTURBED right-side starts as ``side="right", asymmetric_quality=1.0`` draws them
-    (every one perturbed), run through the shared episodes' compiled program. One reset
-    program serves all starts: a right-side start is the default draw or its mirror image,
+    (every one perturbed), run through the shared episodes' compiled program. A right-side
+    start is the default draw or its mirror image (``env.mirror_state`` in the program),
     whichever lies on the right, with its flag set."""
     env = episodes.env
     pert = make_scene(TASK, side="right", asymmetric_quality=1.0)
     keys = jax.random.split(jax.random.key(21), N_SEEDS + N_PERTURBED)
-
-    @jax.jit
-    def starts(keys):
-        s = jax.vmap(env.reset)(keys)
-        sm = jax.vmap(env.mirror_state)(s)
-        right = s.info["side"] < 0
-        pick = lambda a, b: jnp.where(right.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)
-        sr = jax.tree.map(pick, s, sm)
-        sr = sr.replace(info={**sr.info, "perturbed": jnp.ones_like(sr.info["perturbed"])})
-        n = N_SEEDS
-        return jax.tree.map(lambda a, b, c: jnp.concatenate([a[:n], b[:n], c[n:]]), s, sm, sr)
-
-    s0 = starts(keys)
+    q, info = episodes.draw(keys)
+    n = N_SEEDS
+    take = lambda t, *idx: jax.tree.map(lambda a: jnp.concatenate([a[i] for i in idx]), t)
+    qpos, info = take((q, info), slice(None, n), slice(None, n), slice(n, None))
+    info = {**info, "perturbed": info["perturbed"].at[2 * n :].set(True)}
+    mirror = jnp.concatenate([jnp.zeros(n, bool), jnp.ones(n, bool), info["side"][2 * n :] > 0])
+    s0, final, traj = run_starts(episodes, qpos, info, mirror)
     # the perturbed starts are what the asymmetric_quality=1.0, side="right" scene draws
     qp, ip = jax.jit(jax.vmap(lambda k: pert.init(k, env)))(keys[N_SEEDS:])
     assert np.all(np.asarray(ip["perturbed"])) and np.all(np.asarray(ip["side"]) == -1.0)
     np.testing.assert_allclose(np.asarray(s0.data.qpos)[2 * N_SEEDS :], np.asarray(qp), atol=1e-6)
-    final, traj = run_starts(episodes, s0)
     return env, s0, final, traj
 
 

@@ -25,7 +25,7 @@ from equibim_jax.experts.handover_block import PHASES, HandoverExpertConfig
 from equibim_jax.tasks import make_env, make_scene, task_entry, task_names, task_options
 from equibim_jax.tasks.handover_block import HandoverBlock
 
-from task_rollouts import N_PAIRS, assert_same_point_set, collides, expert_fixtures
+from task_rollouts import N_PAIRS, assert_same_point_set, collides, expert_fixtures, run_starts
 
 TASK = "handover_block"
 N_SEEDS = N_PAIRS  # starts kept whole in the shared expert episodes, each with its mirror image
@@ -328,15 +328,9 @@ def test_faithful_variant_expert_succeeds(episodes):
     env_f = make_env(TASK, robotwin_faithful=True, obs=env.config.obs)
     assert dataclasses.replace(env_f.scene, side="both", robotwin_faithful=False) == env.scene
     keys = jax.random.split(jax.random.key(3), 50)
-    # the same start pytree (shapes, dtypes, weak types) as the default env's: no recompile
-    types = lambda e: [(a.shape, a.dtype, a.weak_type)
-                       for a in jax.tree.leaves(jax.eval_shape(jax.vmap(e.reset), keys))]
-    assert types(env_f) == types(env)
-    reset = jax.jit(jax.vmap(env_f.reset))
-    n = N_SEEDS  # the program's batch
-    final = [episodes.run(reset(keys[i : i + n]))[0] for i in range(0, len(keys), n)]
-    success = np.concatenate([np.asarray(f.info["success"]) for f in final])
-    side = np.concatenate([np.asarray(f.info["side"]) for f in final])
+    qpos, info = jax.jit(jax.vmap(lambda k: env_f.scene.init(k, env_f)))(keys)
+    _, final, _ = run_starts(episodes, qpos, info)  # asserts that the program did not recompile
+    success, side = np.asarray(final.info["success"]), np.asarray(final.info["side"])
     print(f"\nfaithful variant: success {success.sum()}/{success.size}")
     assert np.all(side == 1.0)
     assert success.mean() >= 0.95

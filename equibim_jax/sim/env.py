@@ -536,8 +536,18 @@ class Env:
         return data
 
     def reset(self, key: jax.Array) -> State:
-        """A new episode from ``key`` (pure; one environment)."""
-        qpos, task_info = self.scene.init(key, self)
+        """A new episode from ``key`` (pure; one environment): ``reset_to`` of the scene's
+        draw ``scene.init(key, env)``."""
+        return self.reset_to(*self.scene.init(key, self))
+
+    def reset_to(self, qpos: jax.Array, task_info: dict) -> State:
+        """A new episode from a given start: ``qpos`` [nq] and the scene's ``task_info`` (the
+        pair ``scene.init`` returns; any scene of the same task and model may have drawn it).
+        The arms' actuator targets are at home and the rest of the state follows from
+        ``qpos`` (``mjx.forward``). Pure; one environment."""
+        qpos = jnp.asarray(qpos)
+        if qpos.shape != (self.mj_model.nq,):
+            raise ValueError(f"qpos must have shape ({self.mj_model.nq},) (the model's nq); got {qpos.shape}")
         data = mjx.make_data(self.mjx_model)
         data = data.replace(qpos=jnp.asarray(qpos, data.qpos.dtype), ctrl=jnp.asarray(self.home_ctrl, data.ctrl.dtype))
         with jax_cholesky():
