@@ -102,7 +102,7 @@ def test_dynamics_equivariance_with_contacts(x64):
     """
     env = Env(EnvConfig(obs=("qpos", "ee"), action="ee", cone="elliptic"),
               BoxScene(x_range=(0.3, 0.3), y_range=(0.3, 0.3), side="left"))
-    s0 = env.reset(jax.random.key(0))
+    s0 = jax.jit(env.reset)(jax.random.key(0))
     T = 100
     z = jnp.concatenate([jnp.linspace(0.2, 0.03, 50), jnp.linspace(0.03, 0.2, 50)])
     grip = jnp.concatenate([jnp.ones(40), jnp.zeros(60)])
@@ -111,8 +111,12 @@ def test_dynamics_equivariance_with_contacts(x64):
     right = jnp.tile(s0.obs["ee"][10:], (T, 1))
     acts = jnp.concatenate([left, right], 1) + 0.005 * jax.random.normal(jax.random.key(1), (T, 20))
 
-    @jax.jit
-    def roll(s, acts, mirror_out):
+    @jax.jit  # one program for the three rollouts (no eager MJX: op by op, it compiles thousands)
+    def roll(s, acts, mirror_in, mirror_out):
+        pick = lambda m, x: jnp.where(mirror_in, m, x)
+        s = jax.tree.map(pick, env.mirror_state(s), s)
+        acts = pick(jax.vmap(env.action_symmetry)(acts), acts)
+
         def body(s, a):
             s2 = env.step(s, a)
             q = jnp.where(mirror_out, env.mirror_data(s2.data).qpos, s2.data.qpos)
@@ -120,11 +124,11 @@ def test_dynamics_equivariance_with_contacts(x64):
 
         return jax.lax.scan(body, s, acts)[1]
 
-    q_ref = roll(s0, acts, True)  # S(step^t(s, a))
-    q_mir = roll(env.mirror_state(s0), jax.vmap(env.action_symmetry)(acts), False)  # step^t(S s, S a)
+    q_ref = roll(s0, acts, False, True)  # S(step^t(s, a))
+    q_mir = roll(s0, acts, True, False)  # step^t(S s, S a)
     box = env.mj_model.jnt_qposadr[env.mj_model.joint("box").id]
     s_pert = s0.replace(data=s0.data.replace(qpos=s0.data.qpos.at[box].add(1e-9)))
-    q_pert = roll(s_pert, acts, True)
+    q_pert = roll(s_pert, acts, False, True)
     drift = np.abs(np.asarray(q_ref) - np.asarray(q_mir)).max(axis=1)
     chaos = np.abs(np.asarray(q_ref) - np.asarray(q_pert)).max(axis=1)
     moved = np.abs(np.asarray(q_ref)[:, box : box + 3] - np.asarray(q_ref)[0, box : box + 3]).max()
@@ -147,6 +151,8 @@ def test_bad_config_and_actions():
     s = jax.jit(env.reset)(jax.random.key(0))
     with pytest.raises(ValueError, match="action must have shape"):
         env.step(s, jnp.zeros(env.action_size + 1))
+    with pytest.raises(ValueError, match=r"qpos must have shape \(%d,\)" % env.mj_model.nq):
+        env.reset_to(jnp.zeros(env.mj_model.nq + 1), {})
     a = s.obs["qpos"].at[2].set(jnp.nan)
     s2 = jax.jit(env.step)(s, a)
     assert float(s2.metrics["nan_action"]) == 1.0

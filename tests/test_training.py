@@ -1,6 +1,7 @@
 """Losses (BC, L_sym), the jitted train step/loop, and checkpoints (exact resume)."""
 
 import dataclasses
+import functools
 import json
 
 import jax
@@ -302,14 +303,15 @@ def test_sym_loss_rms_and_l2_norms_are_per_sample_norms(setup):
     s_a = sym["action"]
     inputs, _ = SMALL.prepare(batch, key)
     x, k, obs = inputs["noisy_action"], inputs["k"], inputs["obs"]
-    e = np.asarray(_small_apply(params, s_a(x), k, {f: sym[f](v) for f, v in obs.items()})
-                   - s_a(_small_apply(params, x, k, obs))).reshape(5, -1)
+    # jitted, not eager: op by op, the network's forward and backward compile hundreds of programs
+    e = np.asarray(jax.jit(lambda q: _small_apply(q, s_a(x), k, {f: sym[f](v) for f, v in obs.items()})
+                           - s_a(_small_apply(q, x, k, obs)))(params)).reshape(5, -1)
     want = np.mean(np.linalg.norm(e, axis=1) / np.sqrt(e.shape[1]))
-    got = float(sym_loss(SMALL, params, batch, key, sym, norm="rms"))
-    assert got == pytest.approx(want, rel=1e-5)
-    assert float(sym_loss(SMALL, params, batch, key, sym, norm="l2")) == pytest.approx(
-        np.mean(np.linalg.norm(e, axis=1)), rel=1e-5)
-    assert float(sym_loss(SMALL, params, batch, key, sym)) == pytest.approx(np.mean(e**2), rel=1e-5)
+    loss = jax.jit(lambda q, norm: sym_loss(SMALL, q, batch, key, sym, **({} if norm is None else {"norm": norm})),
+                   static_argnums=1)
+    assert float(loss(params, "rms")) == pytest.approx(want, rel=1e-5)
+    assert float(loss(params, "l2")) == pytest.approx(np.mean(np.linalg.norm(e, axis=1)), rel=1e-5)
+    assert float(loss(params, None)) == pytest.approx(np.mean(e**2), rel=1e-5)
     # Scaling the model by c scales d(residual)/d(params) by c; on top of that the MSE's
     # gradient shrinks with the residual (c^2 overall), the unsquared norm's does not (c).
     p = DP3.init(jax.random.key(1))
@@ -317,9 +319,12 @@ def test_sym_loss_rms_and_l2_norms_are_per_sample_norms(setup):
     def scaled(c):
         return _with_net(lambda p_, x_, k_, o_: c * g(p_, x_, k_, o_))
 
+    @functools.partial(jax.jit, static_argnums=1)
+    def grad_norm(c, norm):
+        return optax.tree.norm(jax.grad(lambda q: sym_loss(scaled(c), q, batch, key, sym, norm=norm))(p))
+
     def gnorm(c, norm):
-        grads = jax.grad(lambda q: sym_loss(scaled(c), q, batch, key, sym, norm=norm))(p)
-        return float(optax.tree.norm(grads))
+        return float(grad_norm(jnp.float32(c), norm))
 
     assert gnorm(1e-3, "rms") == pytest.approx(1e-3 * gnorm(1.0, "rms"), rel=1e-3)
     assert gnorm(1e-3, "mse") == pytest.approx(1e-6 * gnorm(1.0, "mse"), rel=1e-3)

@@ -43,12 +43,16 @@ def start_info(task: str, options: dict, seed: int, episodes: int, key: str) -> 
     from equibim_jax.tasks import make_env
 
     env = make_env(task, **options)
+    # the start's info is the scene's draw plus the env's step and success: check the key
+    # on its shapes alone, before tracing any physics
+    drawn = jax.eval_shape(lambda k: env.scene.init(k, env)[1], jax.random.key(0))
+    has = sorted({"step", "success", *drawn})
+    if key not in has:
+        raise ConfigError(f"task {task!r}: the start's info has no {key!r}; it has {has}")
 
     def one(k):
         s, _ = episode_start(env, k, False)
         s_m, _ = episode_start(env, k, True)
-        if key not in s.info:
-            raise ConfigError(f"task {task!r}: the start's info has no {key!r}; it has {sorted(s.info)}")
         return s.info[key], s_m.info[key]
 
     keys = episode_keys(jax.random.key(seed), episodes)
@@ -86,7 +90,6 @@ def split_outcomes(results: dict, cell: str, key: str, evaluation: str | None = 
         raise ConfigError(f"cell {cell!r}: no baseline arm to compare against; arms {sorted(outcomes)}")
     n = int(cfg["eval"]["episodes"])
     task = cfg["task"]["name"] if isinstance(cfg["task"], dict) else cfg["task"]
-    info = start_info(task, evals[evaluation], int(cfg["eval"]["seed"]), n, key)
     sides = [s for s in ("trained", "mirrored") if s in outcomes["baseline"]]
     per = {arm: {s: np.asarray(outcomes[arm][s]["per_episode"], bool) for s in sides} for arm in outcomes}
     for arm, d in per.items():
@@ -94,6 +97,7 @@ def split_outcomes(results: dict, cell: str, key: str, evaluation: str | None = 
             if v.shape != (n,):
                 raise ConfigError(f"cell {cell!r}, arm {arm}, side {s}: {v.shape[0]} outcomes, "
                                   f"the evaluation config says {n} episodes")
+    info = start_info(task, evals[evaluation], int(cfg["eval"]["seed"]), n, key)
     vals = {s: info[s].reshape(n, -1)[:, 0] for s in sides}
     groups = {}
     for v in np.unique(np.concatenate(list(vals.values()))):
