@@ -10,8 +10,11 @@ Usage::
     python tests/run_by_file.py [-j 2] [--timeout SECONDS] [-m slow] [--paths P ...] [PYTEST_ARGS ...]
 
 Exit status 0 when every file passed (or was skipped entirely), 1 otherwise. Files run
-longest-first by the durations of the previous run (kept in ``.pytest_cache``), in
-collection order on a first run.
+longest-first by the durations of the previous run (kept in ``.pytest_cache``); a file
+that has none there (every file, in a fresh clone) takes its figure from the committed
+``tests/slow_durations.json`` (per-file seconds of a cold slow-suite run, two files at a
+time), so the longest files start first on a new machine too; files in neither keep their
+collection order after the others.
 """
 
 from __future__ import annotations
@@ -29,6 +32,16 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 DURATIONS = ROOT / ".pytest_cache" / "run_by_file_durations.json"
+COMMITTED_DURATIONS = ROOT / "tests" / "slow_durations.json"
+
+
+def _read_durations(path: Path) -> dict[str, float]:
+    """``{file: seconds}`` from a JSON file, or ``{}`` when it is missing or unreadable."""
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return {str(k): float(v) for k, v in d.items()} if isinstance(d, dict) else {}
 
 
 def collect(marker: str, extra: list[str], paths: list[str]) -> list[str]:
@@ -78,6 +91,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--paths", nargs="+", default=[], help="where to collect (default: the testpaths)")
     p.add_argument("--durations-file", type=Path, default=DURATIONS,
                    help="where the per-file durations that order the next run are kept")
+    p.add_argument("--committed-durations", type=Path, default=COMMITTED_DURATIONS,
+                   help="per-file seconds used for files without a previous duration (a fresh clone)")
     a, extra = p.parse_known_args(argv)
     if a.jobs < 1:
         p.error(f"--jobs must be >= 1, got {a.jobs}")
@@ -85,11 +100,9 @@ def main(argv: list[str] | None = None) -> int:
     if not files:
         print(f"no tests selected by -m {a.marker!r}")
         return 0
-    try:
-        previous = json.loads(a.durations_file.read_text())
-    except (OSError, ValueError):
-        previous = {}
-    files.sort(key=lambda f: -float(previous.get(f, 0.0)))  # stable: collection order on a first run
+    previous = _read_durations(a.durations_file)
+    order = {**_read_durations(a.committed_durations), **previous}
+    files.sort(key=lambda f: -order.get(f, 0.0))  # stable: collection order for unknown files
     print(f"{len(files)} files, {a.jobs} at a time, -m {a.marker!r}", flush=True)
     t0 = time.perf_counter()
     lock = threading.Lock()

@@ -18,6 +18,8 @@ from equibim_jax.policies.act import act_kl, sinusoid_2d
 from equibim_jax.symmetry import camera_pair_op
 from equibim_jax.training import policy_loss, sym_loss
 
+XLA_O0 = True  # compile-bound slow tests: XLA level 0 in `make test-slow` (tests/conftest.py)
+
 # Tiny sizes: d_model 32, one layer per stack, one ResNet stage, 16x16 images (14x14 crops).
 TINY = dict(d_model=32, n_heads=2, enc_layers=1, dec_layers=1, ff_dim=64, latent_dim=8,
             cvae_layers=1, pred_horizon=4, action_horizon=2)

@@ -23,6 +23,8 @@ from equibim_jax.experiments.demo import (DemoConfig, _first_call_split, format_
 from equibim_jax.policies import DP3Config, EncoderConfig, UNetConfig
 from equibim_jax.training import TrainConfig, load_run
 
+XLA_O0 = True  # compile-bound slow tests: XLA level 0 in `make test-slow` (tests/conftest.py)
+
 POLICY = DP3Config(pred_horizon=8, action_horizon=4, num_inference_steps=2,
                    encoder=EncoderConfig(pc_hidden=(16,), pc_out=16, state_out=16),
                    unet=UNetConfig(down_dims=(8, 16)))
@@ -242,18 +244,18 @@ def test_mirrored_demo_replays_as_a_right_side_success(tiny_demo):
     demos = load(out / "demo" / "demos.zarr")
     env = env_from_meta(dict(demos.meta))
     n = int(demos.length[0])
-    s0 = env.reset(jax.random.fold_in(jax.random.key(demos.meta["seed"]), 0))
-    np.testing.assert_array_equal(np.asarray(s0.obs["qpos"]), demos.obs["qpos"][0, 0])
-    acts = jax.vmap(env.action_symmetry)(jnp.asarray(demos.action[0, :n]))
 
-    @jax.jit
-    def replay(s, acts):
+    @jax.jit  # one program: the demo's start, its mirror image, the mirrored actions replayed
+    def replay(key, acts):
+        s0 = env.reset(key)
         def body(s, a):
             s = env.step(s, a)
             return s, (s.obs["qpos"], s.info["success"])
-        return jax.lax.scan(body, s, acts)
+        return s0.obs["qpos"], jax.lax.scan(body, env.mirror_state(s0), jax.vmap(env.action_symmetry)(acts))[1]
 
-    _, (qpos, success) = replay(env.mirror_state(s0), acts)
+    key = jax.random.fold_in(jax.random.key(demos.meta["seed"]), 0)
+    q0, (qpos, success) = replay(key, jnp.asarray(demos.action[0, :n]))
+    np.testing.assert_array_equal(np.asarray(q0), demos.obs["qpos"][0, 0])
     expected = jax.vmap(env.obs_symmetry.ops["qpos"])(jnp.asarray(demos.obs["qpos"][0, 1:n]))
     assert bool(success[-1])
     assert float(jnp.abs(qpos[:-1] - expected).max()) < 1e-3  # rad; measured 1e-4

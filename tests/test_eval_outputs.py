@@ -19,6 +19,8 @@ from equibim_jax.policies import register_policy
 from equibim_jax.tasks import register_task
 from equibim_jax.training import TrainConfig, load_run, train
 
+XLA_O0 = True  # compile-bound slow tests: XLA level 0 in `make test-slow` (tests/conftest.py)
+
 RECORD_FIELDS = {"episode", "side", "success", "steps", "nan_actions", "any_nan"}
 
 

@@ -14,6 +14,8 @@ from equibim_jax.policies import DP3Config, EncoderConfig, UNetConfig, make_poli
 from equibim_jax.sim.env import Env, EnvConfig
 from equibim_jax.sim.scenes import BoxScene
 
+XLA_O0 = True  # compile-bound slow tests: XLA level 0 in `make test-slow` (tests/conftest.py)
+
 
 def test_policy_rollout_runs_chunks_and_is_deterministic():
     """The tiny env/policy below: 8 steps in 2 chunks of Ta = 4, through the same compiled

@@ -21,6 +21,8 @@ from equibim_jax.sim.scenes import BoxScene
 from equibim_jax.tasks import TaskEntry, register_task
 from equibim_jax.training import TrainConfig, load_run, read_log, train
 
+XLA_O0 = True  # compile-bound slow tests: XLA level 0 in `make test-slow` (tests/conftest.py)
+
 
 # --------------------------------------------------------------------------- a toy policy
 @dataclasses.dataclass(frozen=True)

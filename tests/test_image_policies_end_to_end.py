@@ -16,6 +16,8 @@ from equibim_jax.policies import ACTConfig, DPConfig, ImageObsConfig, UNetConfig
 from equibim_jax.tasks import make_env
 from equibim_jax.training import TrainConfig, load_run, read_log, train
 
+XLA_O0 = True  # compile-bound slow tests: XLA level 0 in `make test-slow` (tests/conftest.py)
+
 VISION = VisionConfig(channels=(8,), groups=4, keypoints=4, out=8, crop_ratio=0.75)
 ENC = ImageObsConfig(image_keys=("image",), vision=VISION, state_hidden=(16,), state_out=8)
 POLICIES = {

@@ -23,6 +23,8 @@ from equibim_jax.training import (
     sample_ring,
 )
 
+XLA_O0 = True  # compile-bound slow tests: XLA level 0 in `make test-slow` (tests/conftest.py)
+
 POLICY = DP3Config(obs_horizon=2, pred_horizon=8, action_horizon=4,
                    encoder=EncoderConfig(pc_key=None, state_hidden=(16,), state_out=8),
                    unet=UNetConfig(down_dims=(16,), kernel_size=3, n_groups=4, step_embed_dim=16))

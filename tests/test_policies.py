@@ -40,6 +40,8 @@ from equibim_jax.training import (
     sym_loss,
 )
 
+XLA_O0 = True  # compile-bound slow tests: XLA level 0 in `make test-slow` (tests/conftest.py)
+
 N_ARM = 6
 IMG = 16
 # Per arm: waist (yaw, flips), shoulder, elbow (pitch, keep), forearm roll (flips), wrist

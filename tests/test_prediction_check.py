@@ -8,6 +8,8 @@ import pytest
 
 from equibim_jax.experiments import prediction_check
 
+XLA_O0 = True  # compile-bound slow tests: XLA level 0 in `make test-slow` (tests/conftest.py)
+
 
 def test_bad_sizes_are_refused(tmp_path):
     with pytest.raises(SystemExit):

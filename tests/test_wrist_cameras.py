@@ -23,6 +23,8 @@ from equibim_jax.sim.robots import load_robot, robot_info, robot_names
 from equibim_jax.symmetry import camera_pair_op, derive_symmetry
 from equibim_jax.tasks import make_env
 
+XLA_O0 = True  # compile-bound slow tests: XLA level 0 in `make test-slow` (tests/conftest.py)
+
 TASK = "place_empty_cup"
 OBS = ("qpos", "image", "wrist_image")
 SIZE = 64
