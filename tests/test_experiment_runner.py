@@ -19,6 +19,8 @@ from equibim_jax.experiments import runner
 from equibim_jax.experiments.runner import ARMS, Manifest, load_experiment, run_experiment
 from equibim_jax.tasks import make_env
 
+XLA_O0 = True  # compile-bound slow tests: XLA level 0 in `make test-slow` (tests/conftest.py)
+
 REPO = Path(__file__).resolve().parent.parent
 
 
@@ -227,8 +229,9 @@ def test_shipped_experiments_parse():
 
 
 def test_including_experiment_inherits_presets_and_defaults(tmp_path):
-    """An including file's cells use the included file's presets, train, eval, demos and
-    seed where it gives none; a local preset of the same name, or a local default, wins."""
+    """An including file's cells use the included file's presets, train, eval, demos, seed
+    and quick sizes where it gives none; a local preset of the same name, or a local default
+    (a quick size too), wins."""
     base = json.loads((REPO / "tasks/experiments/smoke.json").read_text())
     (tmp_path / "base.json").write_text(json.dumps(base))
     preset = next(iter(base["policies"]))
@@ -246,6 +249,16 @@ def test_including_experiment_inherits_presets_and_defaults(tmp_path):
     (tmp_path / "inc.json").write_text(json.dumps(inc))
     own2, = (c for c in load_experiment(str(tmp_path / "inc.json")).cells if c.name == "own")
     assert own2.train.total_steps == 2 * own.train.total_steps and own2.demos == own.demos + 1
+    # quick: the included sizes key by key, a local key wins, the included quick.cells never apply
+    bq = base.get("quick", {})
+    assert bq.get("demos") and bq.get("train")
+    base["quick"] = {**bq, "cells": [base["cells"][0].get("name", f"{cell['task']}/{preset}")]}
+    (tmp_path / "base.json").write_text(json.dumps(base))
+    inc2 = {**inc, "quick": {"demos": bq["demos"] + 1, "cells": ["own"]}}
+    (tmp_path / "inc.json").write_text(json.dumps(inc2))
+    own_q, = load_experiment(str(tmp_path / "inc.json"), quick=True).cells
+    assert own_q.name == "own" and own_q.demos == bq["demos"] + 1
+    assert own_q.train.total_steps == bq["train"]["total_steps"]
     with pytest.raises(ConfigError, match="unknown policy preset 'nope'"):
         (tmp_path / "inc.json").write_text(json.dumps({**inc, "cells": [{**cell, "policy": "nope"}]}))
         load_experiment(str(tmp_path / "inc.json"))

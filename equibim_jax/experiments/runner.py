@@ -186,9 +186,10 @@ _WHOLE = ("seed", "demos", "train", "eval", "quick")
 def _with_included_defaults(data: dict, path: Path, seen: tuple = ()) -> dict:
     """``data`` with what its own cells resolve against taken from its ``include`` chain
     where the file does not give it: policy presets and per-task defaults by name (a local
-    entry replaces the included one of that name), and ``seed``, ``demos``, ``train``,
-    ``eval`` and ``quick`` as a whole. An including experiment's cells therefore use the
-    included experiment's presets, not a copy of them that can fall out of date."""
+    entry replaces the included one of that name), ``seed``, ``demos``, ``train`` and
+    ``eval`` as a whole, and the ``quick`` sizes key by key (a local key wins; the included
+    ``quick.cells`` never applies). An including experiment's cells therefore use the
+    included experiment's presets and quick sizes, not copies that can fall out of date."""
     inc = data.get("include")
     if inc is None:
         return data
@@ -203,6 +204,8 @@ def _with_included_defaults(data: dict, path: Path, seen: tuple = ()) -> dict:
     for k in _WHOLE:
         if k not in data and k in base:
             out[k] = base[k]
+    if "quick" in data and "quick" in base:  # the included quick sizes, key by key; its cells stay its own
+        out["quick"] = {**{k: v for k, v in base["quick"].items() if k != "cells"}, **data["quick"]}
     return out
 
 
