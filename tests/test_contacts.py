@@ -8,6 +8,8 @@ import pytest
 from equibim_jax.sim.env import Env, EnvConfig
 from equibim_jax.sim.scenes import BoxScene
 
+XLA_O0 = True  # compile-bound slow tests: XLA level 0 in `make test-slow` (tests/conftest.py)
+
 
 @pytest.mark.parametrize("bad", [0, -3, 2.5])
 def test_max_contacts_must_be_a_positive_int(bad):

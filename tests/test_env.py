@@ -12,6 +12,8 @@ from equibim_jax.sim import robot_names
 from equibim_jax.sim.env import Env, EnvConfig, Scene, VmapEnv
 from equibim_jax.sim.scenes import BoxScene
 
+XLA_O0 = True  # compile-bound slow tests: XLA level 0 in `make test-slow` (tests/conftest.py)
+
 
 
 @functools.lru_cache(maxsize=None)
